@@ -1,0 +1,152 @@
+"""Soft Actor-Critic, compact: losses are pure functions, the update step owns the optimisers.
+
+Defaults are the paper's table 7 (the SAC used for victims); the intention policy overrides
+the learning rate (``algorithm.md`` §2).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from rat.agents.networks import TanhGaussianActor, TwinCritic
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """SAC hyperparameters (defaults: the paper's table 7)."""
+
+    hidden: int = 256  #: width of every hidden layer
+    layers: int = 3  #: hidden layers in actor and critics
+    lr: float = 1e-4  #: Adam learning rate of actor and critics
+    alpha_lr: float = 1e-4  #: Adam learning rate of the temperature
+    init_temperature: float = 0.1  #: initial entropy temperature
+    gamma: float = 0.99  #: discount
+    tau: float = 0.005  #: target-critic EMA rate
+    target_update_every: int = 2  #: critic target update period, in updates
+    actor_update_every: int = 1  #: actor and temperature update period, in updates
+    batch_size: int = 1024  #: transitions per update
+    log_std_bounds: tuple[float, float] = (-5.0, 2.0)  #: actor log-std range
+    learnable_temperature: bool = True  #: tune the temperature towards the target entropy
+
+
+# --- losses: pure functions of networks and a batch ----------------------------------------------
+
+
+def critic_loss(critic: TwinCritic, critic_target: TwinCritic, actor: TanhGaussianActor, alpha: torch.Tensor,
+                batch: dict[str, torch.Tensor], gamma: float) -> dict[str, torch.Tensor]:
+    """Soft Bellman residual of both critics; bootstraps unless ``terminated``."""
+    with torch.no_grad():
+        next_action, next_log_prob = actor.sample(batch["next_obs"])
+        tq1, tq2 = critic_target(batch["next_obs"], next_action)
+        target_v = torch.min(tq1, tq2) - alpha * next_log_prob
+        target_q = batch["reward"] + gamma * (1.0 - batch["terminated"]) * target_v
+    q1, q2 = critic(batch["obs"], batch["action"])
+    loss = ((q1 - target_q) ** 2).mean() + ((q2 - target_q) ** 2).mean()
+    return {"critic_loss": loss, "q_mean": q1.mean().detach(), "target_q_mean": target_q.mean()}
+
+
+def actor_loss(actor: TanhGaussianActor, critic: TwinCritic, alpha: torch.Tensor, obs: torch.Tensor) -> dict[str, torch.Tensor]:
+    """``E[alpha log pi(a|s) - min Q(s, a)]``, a ~ pi (the paper's eq. for J_pi)."""
+    action, log_prob = actor.sample(obs)
+    q1, q2 = critic(obs, action)
+    loss = (alpha.detach() * log_prob - torch.min(q1, q2)).mean()
+    return {"actor_loss": loss, "log_prob": log_prob.detach()}
+
+
+def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_entropy: float) -> torch.Tensor:
+    """Drives the policy's entropy towards ``target_entropy``."""
+    return (log_alpha.exp() * (-log_prob - target_entropy)).mean()
+
+
+# --- the agent -----------------------------------------------------------------------------------
+
+
+class SAC(nn.Module):
+    """Actor, twin critic, target critic and temperature, with their optimisers."""
+
+    def __init__(self, obs_dim: int, act_dim: int, config: SACConfig = SACConfig(), device: str = "cpu"):
+        super().__init__()
+        self.config, self.obs_dim, self.act_dim = config, obs_dim, act_dim
+        self.actor = TanhGaussianActor(obs_dim, act_dim, config.hidden, config.layers, config.log_std_bounds)
+        self.critic = TwinCritic(obs_dim, act_dim, config.hidden, config.layers)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.log_alpha = nn.Parameter(torch.tensor(float(np.log(config.init_temperature))))
+        self.target_entropy = -float(act_dim)
+        self.to(device)
+        self.device = device
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.lr)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=config.alpha_lr)
+        self.updates = 0
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.exp()
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Action for one observation (numpy in, numpy out)."""
+        x = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+        action = self.actor(x) if deterministic else self.actor.sample(x)[0]
+        return action.squeeze(0).cpu().numpy()
+
+    def reset_critic(self) -> None:
+        """Re-initialise critics and their optimiser (PEBBLE does this after the first query round)."""
+        cfg = self.config
+        self.critic = TwinCritic(self.obs_dim, self.act_dim, cfg.hidden, cfg.layers).to(self.device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.lr)
+
+    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """One SAC update on ``batch``; returns its metrics."""
+        cfg = self.config
+        metrics: dict[str, float] = {}
+        out = critic_loss(self.critic, self.critic_target, self.actor, self.alpha.detach(), batch, cfg.gamma)
+        self.critic_opt.zero_grad(set_to_none=True)
+        out["critic_loss"].backward()
+        self.critic_opt.step()
+        metrics.update({k: float(v) for k, v in out.items()})
+
+        if self.updates % cfg.actor_update_every == 0:
+            self.critic.requires_grad_(False)  # the actor loss must not move the critic
+            out = actor_loss(self.actor, self.critic, self.alpha, batch["obs"])
+            self.critic.requires_grad_(True)
+            self.actor_opt.zero_grad(set_to_none=True)
+            out["actor_loss"].backward()
+            self.actor_opt.step()
+            metrics["actor_loss"] = float(out["actor_loss"])
+            metrics["entropy"] = float(-out["log_prob"].mean())
+            if cfg.learnable_temperature:
+                loss = temperature_loss(self.log_alpha, out["log_prob"], self.target_entropy)
+                self.alpha_opt.zero_grad(set_to_none=True)
+                loss.backward()
+                self.alpha_opt.step()
+                metrics["alpha_loss"] = float(loss)
+        if self.updates % cfg.target_update_every == 0:
+            with torch.no_grad():
+                for p, tp in zip(self.critic.parameters(), self.critic_target.parameters()):
+                    tp.lerp_(p, cfg.tau)
+        self.updates += 1
+        metrics["alpha"] = float(self.alpha)
+        return metrics
+
+    # --- checkpoints -------------------------------------------------------------------------
+
+    def optimizer_state(self) -> dict:
+        return {"actor": self.actor_opt.state_dict(), "critic": self.critic_opt.state_dict(),
+                "alpha": self.alpha_opt.state_dict(), "updates": self.updates}
+
+    def load_optimizer_state(self, state: dict) -> None:
+        self.actor_opt.load_state_dict(state["actor"])
+        self.critic_opt.load_state_dict(state["critic"])
+        self.alpha_opt.load_state_dict(state["alpha"])
+        self.updates = int(state["updates"])
+
+    def describe(self) -> dict:
+        """JSON-able description of the agent's shape and configuration."""
+        return {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "sac": asdict(self.config)}

@@ -1,0 +1,154 @@
+"""Run directories: the resolved configuration, metrics as CSV (TensorBoard when asked), checkpoints.
+
+Layout of a run directory::
+
+    config.json          the resolved configuration (written once; a resume checks it)
+    metrics.csv          one row per logged step, columns grow as metrics appear
+    checkpoint.json/.safetensors   the latest checkpoint (atomic replace)
+    tensorboard/         only with tensorboard=True
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import random
+import subprocess
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rat.errors import RatError, require
+
+
+def git_commit() -> str:
+    """The commit of the code that runs, or ``"unknown"`` outside a git checkout."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def to_jsonable(value: Any) -> Any:
+    """Dataclasses, tuples and numpy scalars as plain JSON values."""
+    if is_dataclass(value):
+        return to_jsonable(asdict(value))
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+class MetricsLogger:
+    """Appends metric rows to ``metrics.csv`` and, if asked, to TensorBoard.
+
+    The CSV is rewritten with a wider header when a new metric name appears, so every row
+    stays readable by any CSV reader.
+    """
+
+    def __init__(self, directory: Path, tensorboard: bool = False):
+        self.path = directory / "metrics.csv"
+        self.columns: list[str] = []
+        if self.path.exists():
+            with open(self.path, newline="") as f:
+                self.columns = next(csv.reader(f), [])
+        self.writer = None
+        if tensorboard:
+            tb = require("torch.utils.tensorboard", "tensorboard")
+            self.writer = tb.SummaryWriter(str(directory / "tensorboard"))
+
+    def log(self, step: int, metrics: dict[str, float]) -> None:
+        row = {"step": step, **{k: float(v) for k, v in metrics.items()}}
+        new = [k for k in row if k not in self.columns]
+        if new:
+            old_rows = self.read() if self.path.exists() else []
+            self.columns = self.columns + new if self.columns else list(row)
+            with open(self.path, "w", newline="") as f:
+                w = csv.DictWriter(f, self.columns)
+                w.writeheader()
+                w.writerows(old_rows)
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, self.columns).writerow(row)
+        if self.writer is not None:
+            for k, v in metrics.items():
+                self.writer.add_scalar(k, v, step)
+
+    def read(self) -> list[dict[str, str]]:
+        with open(self.path, newline="") as f:
+            return list(csv.DictReader(f))
+
+    def truncate_after(self, step: int) -> None:
+        """Drop rows logged after ``step`` (a resumed run redoes them)."""
+        if self.path.exists():
+            rows = [r for r in self.read() if float(r["step"]) <= step]
+            with open(self.path, "w", newline="") as f:
+                w = csv.DictWriter(f, self.columns)
+                w.writeheader()
+                w.writerows(rows)
+
+
+class Run:
+    """A run directory. ``Run(dir, config)`` starts it or, if it already holds the same config, resumes it."""
+
+    def __init__(self, directory: str | Path, config: Any, tensorboard: bool = False):
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.config = to_jsonable(config)
+        config_path = self.dir / "config.json"
+        if config_path.exists():
+            saved = json.loads(config_path.read_text())
+            if saved != self.config:
+                diff = sorted(k for k in set(saved) | set(self.config) if saved.get(k) != self.config.get(k))
+                raise RatError(f"run directory '{self.dir}' holds a different configuration (differs in: "
+                               f"{', '.join(diff)}); pick a new --out directory or repeat the original options")
+        else:
+            config_path.write_text(json.dumps(self.config, indent=1))
+        self.logger = MetricsLogger(self.dir, tensorboard)
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.dir / "checkpoint"
+
+    def has_checkpoint(self) -> bool:
+        return self.checkpoint_path.with_suffix(".json").exists()
+
+
+# --- random-generator states -------------------------------------------------------------------
+
+
+def rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    """Everything needed to continue the random streams exactly: ``rng``, numpy, Python, torch."""
+    return {
+        "generator": json.dumps(rng.bit_generator.state),
+        "torch": torch.get_rng_state(),
+        "python": json.dumps(random.getstate()),
+        "numpy_global": json.dumps(np.random.get_state(legacy=False), default=lambda a: a.tolist()),
+    }
+
+
+def restore_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
+    rng.bit_generator.state = json.loads(state["generator"])
+    torch.set_rng_state(state["torch"])
+    py = json.loads(state["python"])
+    random.setstate((py[0], tuple(py[1]), py[2]))
+    g = json.loads(state["numpy_global"])
+    g["state"]["key"] = np.asarray(g["state"]["key"], np.uint32)
+    np.random.set_state(g)
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    """Seed Python, numpy's global state and torch; return the run's own generator."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)

@@ -1,0 +1,116 @@
+"""The victim: a frozen policy whose observations the adversary perturbs.
+
+Every victim, whatever made it, is seen through one protocol, :class:`Victim`: a
+differentiable deterministic action for a batch of observations, the spaces it expects, and an
+optional sequence context for victims that read their history (Decision Transformers).
+Victims are frozen when made: their parameters never require gradients and never change
+during an attack, but gradients flow *through* them to the perturbed observation.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+from rat.errors import RatError
+
+
+@runtime_checkable
+class Victim(Protocol):
+    """What the attack needs of a victim.
+
+    Attributes:
+        observation_space: the observations it was trained on (a ``Box``).
+        action_space: the actions it emits (a ``Box``).
+        name: where it came from, for reports.
+    """
+
+    observation_space: gym.spaces.Box
+    action_space: gym.spaces.Box
+    name: str
+
+    def act(self, obs: torch.Tensor, context: Any = None) -> torch.Tensor:
+        """Deterministic actions ``[B, act_dim]`` for observations ``[B, obs_dim]``, differentiable in ``obs``.
+
+        ``context`` is whatever :meth:`initial_context` / :meth:`update_context` returned;
+        memoryless victims ignore it.
+        """
+
+    def initial_context(self, batch_size: int = 1) -> Any:
+        """The context at the start of an episode (``None`` for memoryless victims)."""
+
+    def update_context(self, context: Any, obs: torch.Tensor, action: torch.Tensor, reward: torch.Tensor) -> Any:
+        """The context after the victim saw ``obs``, emitted ``action`` and received ``reward``."""
+
+
+def freeze(module: nn.Module) -> nn.Module:
+    """Put ``module`` in eval mode and stop its parameters from ever requiring gradients."""
+    module.eval()
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return module
+
+
+class ModuleVictim(nn.Module):
+    """A memoryless victim around a torch module mapping observations to actions.
+
+    Args:
+        policy: ``obs [B, obs_dim] -> action [B, act_dim]``, deterministic. It is frozen here.
+        observation_space, action_space: what it expects and emits.
+        name: a label for reports.
+        squashed: the module outputs actions in ``[-1, 1]`` that are rescaled to the action
+            space's bounds (SB3 and this project's actors do this); otherwise they are clipped.
+    """
+
+    def __init__(self, policy: nn.Module, observation_space: gym.spaces.Box, action_space: gym.spaces.Box,
+                 name: str = "torch-module", squashed: bool = True):
+        super().__init__()
+        self.policy = freeze(policy)
+        self.observation_space, self.action_space, self.name = observation_space, action_space, name
+        self.squashed = squashed
+        self.register_buffer("low", torch.as_tensor(action_space.low, dtype=torch.float32))
+        self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
+
+    def train(self, mode: bool = True) -> "ModuleVictim":
+        # A victim never leaves eval mode (dropout or batch-norm would make it stochastic).
+        return super().train(False)
+
+    def act(self, obs: torch.Tensor, context: Any = None) -> torch.Tensor:
+        out = self.policy(obs.float())
+        if self.squashed:
+            return self.low + 0.5 * (out + 1.0) * (self.high - self.low)
+        return torch.max(torch.min(out, self.high), self.low)
+
+    forward = act
+
+    def initial_context(self, batch_size: int = 1) -> None:
+        return None
+
+    def update_context(self, context, obs, action, reward) -> None:
+        return None
+
+    @torch.no_grad()
+    def act_numpy(self, obs: np.ndarray) -> np.ndarray:
+        """One action for one observation, numpy in and out (for rollouts)."""
+        return self.act(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+
+
+def check_compatible(victim: Victim, env: gym.Env, env_name: str = "the environment") -> None:
+    """Raise a one-line :class:`RatError` saying exactly how ``victim`` and ``env`` disagree."""
+    problems = []
+    v_obs, e_obs = victim.observation_space, env.observation_space
+    v_act, e_act = victim.action_space, env.action_space
+    if tuple(v_obs.shape) != tuple(e_obs.shape):
+        problems.append(f"observation shape {tuple(v_obs.shape)} vs {tuple(e_obs.shape)}")
+    if tuple(v_act.shape) != tuple(e_act.shape):
+        problems.append(f"action shape {tuple(v_act.shape)} vs {tuple(e_act.shape)}")
+    elif not (np.allclose(v_act.low, e_act.low) and np.allclose(v_act.high, e_act.high)):
+        problems.append(f"action bounds [{v_act.low.min():g}, {v_act.high.max():g}] vs "
+                        f"[{e_act.low.min():g}, {e_act.high.max():g}]")
+    if problems:
+        raise RatError(f"victim '{victim.name}' does not fit {env_name} (victim vs env: {'; '.join(problems)}); "
+                       "pick a victim trained on this task or the matching task")
