@@ -110,7 +110,7 @@ class SAC(nn.Module):
         self.critic_opt.zero_grad(set_to_none=True)
         out["critic_loss"].backward()
         self.critic_opt.step()
-        metrics.update({k: float(v) for k, v in out.items()})
+        metrics.update({k: v.item() for k, v in out.items()})
 
         if self.updates % cfg.actor_update_every == 0:
             self.critic.requires_grad_(False)  # the actor loss must not move the critic
@@ -119,20 +119,20 @@ class SAC(nn.Module):
             self.actor_opt.zero_grad(set_to_none=True)
             out["actor_loss"].backward()
             self.actor_opt.step()
-            metrics["actor_loss"] = float(out["actor_loss"])
+            metrics["actor_loss"] = out["actor_loss"].item()
             metrics["entropy"] = float(-out["log_prob"].mean())
             if cfg.learnable_temperature:
                 loss = temperature_loss(self.log_alpha, out["log_prob"], self.target_entropy)
                 self.alpha_opt.zero_grad(set_to_none=True)
                 loss.backward()
                 self.alpha_opt.step()
-                metrics["alpha_loss"] = float(loss)
+                metrics["alpha_loss"] = loss.item()
         if self.updates % cfg.target_update_every == 0:
             with torch.no_grad():
                 for p, tp in zip(self.critic.parameters(), self.critic_target.parameters()):
                     tp.lerp_(p, cfg.tau)
         self.updates += 1
-        metrics["alpha"] = float(self.alpha)
+        metrics["alpha"] = self.alpha.item()
         return metrics
 
     # --- checkpoints -------------------------------------------------------------------------

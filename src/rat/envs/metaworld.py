@@ -78,7 +78,7 @@ class MetaWorldTask(gym.Env):
         task: str,
         seed: int = 0,
         render_mode: str | None = None,
-        camera: str = "corner",
+        camera: str = "corner2",
         size: int = 224,
     ):
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
@@ -89,11 +89,11 @@ class MetaWorldTask(gym.Env):
         cls = ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE[f"{task}-goal-observable"]
         self._env = cls(seed=seed, render_mode=render_mode)
         if render_mode is not None:
-            self._env.camera_name = camera
-            self._env.width = self._env.height = size
-            self._env.mujoco_renderer.width = self._env.mujoco_renderer.height = size
-            self._env.mujoco_renderer.camera_name = camera
-            self._env.mujoco_renderer.camera_id = None
+            from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer
+
+            self._env.mujoco_renderer.close()
+            self._env.mujoco_renderer = MujocoRenderer(self._env.model, self._env.data, None, size, size,
+                                                       camera_name=camera)
         self._env._freeze_rand_vec = False  # a new object and goal at every reset
         self._env.seeded_rand_vec = True  # ... drawn from the env's own seeded generator
         self._env.seed(seed)
@@ -148,10 +148,12 @@ class MetaWorldTask(gym.Env):
         if self.render_mode is None:
             raise RatError("this environment was made without render_mode; pass render_mode='rgb_array'")
         frame = self._env.render()
-        # Meta-World's corner cameras render upside down.
-        return np.ascontiguousarray(frame[::-1])
+        # Meta-World's cameras come out upside down: turn the image by 180 degrees.
+        return np.ascontiguousarray(frame[::-1, ::-1])
 
     def close(self):
+        if self.render_mode is not None:
+            self._env.mujoco_renderer.close()  # free the GL context now, not at interpreter exit
         self._env.close()
 
 

@@ -1,0 +1,47 @@
+"""Victims: the frozen policies under attack, whatever made them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rat.errors import RatError
+from rat.victims.adapters import load_rat_victim, load_sb3_victim, save_victim
+from rat.victims.base import ModuleVictim, Victim, check_compatible, freeze
+from rat.victims.zoo import ZOO_PREFIX, load_zoo_victim, zoo_tasks
+
+
+def load_victim(spec: str) -> ModuleVictim:
+    """Load a victim from a specification string.
+
+    - ``zoo:<task>``: a shipped victim, e.g. ``zoo:drawer-open-v3``;
+    - ``sb3:<file>`` or any ``*.zip``: a Stable-Baselines3 SAC/TD3/PPO model file;
+    - a path to this project's victim checkpoint (``victim.json``/``.safetensors``, or the run
+      directory holding them).
+    """
+    if spec.startswith(ZOO_PREFIX):
+        return load_zoo_victim(spec[len(ZOO_PREFIX):])
+    if spec.startswith("sb3:"):
+        return load_sb3_victim(spec[4:])
+    path = Path(spec)
+    if path.suffix == ".zip":
+        return load_sb3_victim(path)
+    if path.is_dir():
+        path = path / "victim"
+    if not path.with_suffix(".json").exists() and not path.exists():
+        raise RatError(f"no victim at '{spec}': give zoo:<task>, a Stable-Baselines3 .zip, or a victim checkpoint "
+                       f"(zoo tasks: {', '.join(zoo_tasks())})")
+    return load_rat_victim(path, name=spec)
+
+
+__all__ = [
+    "ModuleVictim",
+    "Victim",
+    "check_compatible",
+    "freeze",
+    "load_rat_victim",
+    "load_sb3_victim",
+    "load_victim",
+    "load_zoo_victim",
+    "save_victim",
+    "zoo_tasks",
+]

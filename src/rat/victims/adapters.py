@@ -44,7 +44,8 @@ def box_from_json(data: dict[str, Any]) -> gym.spaces.Box:
     shape = tuple(data["shape"])
     low = np.array([float(v) for v in data["low"]], np.float64).reshape(shape)
     high = np.array([float(v) for v in data["high"]], np.float64).reshape(shape)
-    return gym.spaces.Box(low, high, shape, dtype=np.dtype(data.get("dtype", "float32")))
+    dtype = np.dtype(data.get("dtype", "float32"))
+    return gym.spaces.Box(low.astype(dtype), high.astype(dtype), shape, dtype=dtype)
 
 
 # --- this project's victims --------------------------------------------------------------------
@@ -151,14 +152,34 @@ class _SB3PPOActor(nn.Module):
         return self.action_net(self.latent(obs))
 
 
+def _parse_numpy_text(texts: list, shape: tuple[int, ...]) -> np.ndarray | None:
+    """Numbers from numpy's printed form (``"[-1. -1. inf]"`` or a scalar ``"-1.0"``), or None if elided."""
+    for text in texts:
+        if isinstance(text, (int, float, list)):
+            return np.broadcast_to(np.asarray(text, np.float64), shape).copy()
+        if not isinstance(text, str) or "..." in text:
+            continue
+        numbers = [float(t) for t in text.replace("[", " ").replace("]", " ").replace(",", " ").split()]
+        if len(numbers) == 1:
+            return np.full(shape, numbers[0])
+        if len(numbers) == int(np.prod(shape)):
+            return np.asarray(numbers).reshape(shape)
+    return None
+
+
 def _sb3_box(data: dict[str, Any], key: str, path: Path) -> gym.spaces.Box:
+    """A Box from the readable fields SB3 writes beside the pickled space."""
     space = data.get(key, {})
     if not isinstance(space, dict) or "_shape" not in space or "low" not in space:
         raise RatError(f"'{path}' has a non-Box {key.replace('_', ' ')}; only Box observations and actions are supported")
     shape = tuple(space["_shape"])
-    low = np.asarray(space["low"], np.float64).reshape(shape)
-    high = np.asarray(space["high"], np.float64).reshape(shape)
-    return gym.spaces.Box(low, high, shape, dtype=np.dtype(space.get("dtype", "float32")))
+    low = _parse_numpy_text([space.get("low"), space.get("low_repr")], shape)
+    high = _parse_numpy_text([space.get("high"), space.get("high_repr")], shape)
+    if low is None or high is None:
+        raise RatError(f"the bounds of the {key.replace('_', ' ')} in '{path}' are not readable; "
+                       "wrap the model as a ModuleVictim in Python instead")
+    dtype = np.dtype(space.get("dtype", "float32"))
+    return gym.spaces.Box(low.astype(dtype), high.astype(dtype), shape, dtype=dtype)
 
 
 def load_sb3_victim(path: str | Path, name: str | None = None) -> ModuleVictim:

@@ -8,6 +8,7 @@ victim and saving it as ``victim.safetensors`` + ``victim.json``.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -140,7 +141,8 @@ def _train_bc(cfg: VictimConfig, run: Run, rng: np.random.Generator, env, progre
                             {"actor": actor.state_dict(), "optimizer": optimizer.state_dict(),
                              "rng": rng_state(rng), "demos": _demos_state(demos)}, {"update": update})
 
-    behaviour_clone(actor, demos, cfg.bc_updates, cfg.bc_batch, optimizer, rng, start, on_chunk, progress=progress)
+    chunk = math.gcd(1000, cfg.checkpoint_every)  # log every chunk; every checkpoint falls on a chunk's end
+    behaviour_clone(actor, demos, cfg.bc_updates, cfg.bc_batch, optimizer, rng, start, on_chunk, chunk, progress)
     return actor
 
 

@@ -1,0 +1,29 @@
+# The two commands of the README: `make demo` (the main job) and `make test` (the test suite).
+# Both create the virtual environment and install everything on first use.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.rat-installed
+
+.PHONY: demo test install zoo clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/rat victim eval zoo:drawer-open-v3 --episodes 20 --video runs/demo/drawer-open-v3.mp4
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+zoo: $(STAMP)
+	$(BIN)/rat victim zoo --jobs 2
+
+clean:
+	rm -rf $(VENV) runs

@@ -1,0 +1,15 @@
+"""Test-session settings: one torch thread (6-10x faster for small step-by-step work on 2 cores)."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+torch.set_num_threads(1)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)

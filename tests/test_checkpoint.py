@@ -1,0 +1,70 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from rat.agents.sac import SAC, SACConfig
+from rat.checkpoint import load_checkpoint, save_checkpoint
+from rat.errors import RatError
+
+
+def small_agent():
+    torch.manual_seed(0)
+    agent = SAC(3, 2, SACConfig(hidden=8, layers=1, batch_size=4))
+    batch = {"obs": torch.randn(4, 3), "action": torch.rand(4, 2) * 2 - 1, "reward": torch.randn(4),
+             "next_obs": torch.randn(4, 3), "terminated": torch.zeros(4)}
+    agent.update(batch)  # gives the optimisers some state
+    return agent
+
+
+def test_round_trip_of_networks_optimisers_and_arrays(tmp_path):
+    agent = small_agent()
+    state = {"agent": agent.state_dict(), "optimizers": agent.optimizer_state(),
+             "array": np.arange(6.0).reshape(2, 3), "nested": [1, (2, "x"), {"k": None}]}
+    save_checkpoint(tmp_path / "ck", "test", state, {"note": "hello"})
+    loaded, meta = load_checkpoint(tmp_path / "ck", "test")
+    assert meta == {"note": "hello"}
+    clone = SAC(3, 2, SACConfig(hidden=8, layers=1, batch_size=4))
+    clone.load_state_dict(loaded["agent"])
+    clone.load_optimizer_state(loaded["optimizers"])
+    for (k, a), b in zip(agent.state_dict().items(), clone.state_dict().values()):
+        torch.testing.assert_close(a, b, msg=k)
+    assert clone.updates == agent.updates == 1
+    assert clone.actor_opt.state_dict()["state"].keys() == agent.actor_opt.state_dict()["state"].keys()
+    np.testing.assert_array_equal(loaded["array"], state["array"])
+    assert loaded["nested"] == [1, (2, "x"), {"k": None}]
+
+
+def test_a_checkpoint_is_two_plain_files_and_no_pickle(tmp_path):
+    save_checkpoint(tmp_path / "ck", "test", {"w": torch.ones(2)}, {})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ck.json", "ck.safetensors"]
+    assert json.loads((tmp_path / "ck.json").read_text())["format"] == "rat-checkpoint"
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("json", "corrupted"),
+    ("tensors", "unreadable or corrupted"),
+    ("foreign", "not a rat checkpoint"),
+    ("missing", "no checkpoint at"),
+])
+def test_damaged_checkpoints_give_one_line_errors(tmp_path, damage, message):
+    path = save_checkpoint(tmp_path / "ck", "test", {"w": torch.ones(1000)}, {})
+    if damage == "json":
+        path.with_suffix(".json").write_text('{"format": "rat-checkp')
+    elif damage == "tensors":
+        data = path.with_suffix(".safetensors").read_bytes()
+        path.with_suffix(".safetensors").write_bytes(data[: len(data) // 2])
+    elif damage == "foreign":
+        path.with_suffix(".json").write_text('{"model": "something else"}')
+    else:
+        path.with_suffix(".json").unlink()
+    with pytest.raises(RatError, match=message) as info:
+        load_checkpoint(path, "test")
+    assert "\n" not in str(info.value)
+
+
+def test_kind_is_checked(tmp_path):
+    save_checkpoint(tmp_path / "ck", "victim", {}, {})
+    with pytest.raises(RatError, match="'victim' checkpoint, not a 'sac-run' one"):
+        load_checkpoint(tmp_path / "ck", "sac-run")

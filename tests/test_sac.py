@@ -1,0 +1,113 @@
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from rat.agents.buffer import ReplayBuffer
+from rat.agents.networks import TanhGaussianActor, TwinCritic
+from rat.agents.sac import SAC, SACConfig, critic_loss
+
+
+class TrackTheSignal:
+    """A one-step task shipped with the tests: observe x in [-0.8, 0.8]^2, be paid -(a - x0)^2."""
+
+    def __init__(self, rng):
+        self.rng = rng
+
+    def reset(self):
+        self.x = self.rng.uniform(-0.8, 0.8, 2).astype(np.float32)
+        return self.x
+
+    def step(self, action):
+        return -float((action[0] - self.x[0]) ** 2)
+
+
+def run_episodes(policy, env, n):
+    return np.array([env.step(policy(env.reset())) for _ in range(n)])
+
+
+def test_sac_learns_a_tiny_task_within_a_bounded_number_of_updates():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    env = TrackTheSignal(rng)
+    agent = SAC(2, 1, SACConfig(hidden=64, layers=2, lr=3e-3, alpha_lr=3e-3, batch_size=128, init_temperature=0.05))
+    buffer = ReplayBuffer(2, 1, 5000)
+    before = dict((k, v.clone()) for k, v in agent.actor.state_dict().items())
+    for step in range(1500):
+        obs = env.reset()
+        action = agent.act(obs) if step >= 200 else rng.uniform(-1, 1, 1)
+        buffer.add(obs, action, env.step(action), obs, terminated=True)
+        if step >= 200:
+            agent.update(buffer.sample(128, rng))
+    assert agent.updates == 1300  # the update path ran, every time
+    assert any(not torch.equal(before[k], v) for k, v in agent.actor.state_dict().items())
+    trained = run_episodes(lambda o: agent.act(o, deterministic=True), env, 300)
+    random = run_episodes(lambda o: rng.uniform(-1, 1, 1), env, 300)
+    p = stats.mannwhitneyu(trained, random, alternative="greater").pvalue
+    assert trained.mean() > -0.02 and p < 1e-6, f"trained {trained.mean():.4f} random {random.mean():.4f} p={p:.2g}"
+
+
+def test_actor_log_prob_matches_a_change_of_variables_by_sampling():
+    torch.manual_seed(0)
+    actor = TanhGaussianActor(3, 2, hidden=16, layers=1)
+    obs = torch.randn(1, 3).expand(4000, 3)
+    action, log_prob = actor.sample(obs)
+    mu, log_std = actor.distribution_params(obs[:1])
+    base = torch.distributions.Normal(mu, log_std.exp())
+    pre = torch.atanh(action.clamp(-0.999999, 0.999999))
+    expected = (base.log_prob(pre) - torch.log1p(-action.pow(2) + 1e-12)).sum(-1)
+    torch.testing.assert_close(log_prob, expected, atol=2e-3, rtol=1e-3)
+
+
+def test_critic_target_bootstraps_through_truncation_but_not_termination():
+    torch.manual_seed(0)
+    actor, critic = TanhGaussianActor(2, 1, 8, 1), TwinCritic(2, 1, 8, 1)
+
+    def target(terminated: float) -> float:
+        batch = {"obs": torch.zeros(1, 2), "action": torch.zeros(1, 1), "reward": torch.ones(1),
+                 "next_obs": torch.ones(1, 2), "terminated": torch.tensor([terminated])}
+        torch.manual_seed(1)
+        return critic_loss(critic, critic, actor, torch.tensor(0.0), batch, gamma=0.9)["target_q_mean"].item()
+
+    torch.manual_seed(1)
+    next_action, _ = actor.sample(torch.ones(1, 2))
+    q_next = torch.min(*critic(torch.ones(1, 2), next_action)).item()
+    assert target(0.0) == pytest.approx(1.0 + 0.9 * q_next, abs=1e-6)  # truncated: bootstraps
+    assert target(1.0) == pytest.approx(1.0, abs=1e-6)  # terminated: reward only
+
+
+def test_buffer_keeps_truncated_transitions_bootstrappable():
+    buf = ReplayBuffer(1, 1, 10)
+    buf.add([0.0], [0.0], 1.0, [1.0], terminated=False)  # a time-limit cut: truncated, not terminated
+    buf.add([1.0], [0.0], 1.0, [2.0], terminated=True)
+    assert buf.terminated[:2].tolist() == [0.0, 1.0]
+
+
+def test_relabel_rewrites_every_stored_reward():
+    buf = ReplayBuffer(2, 1, 100)
+    rng = np.random.default_rng(0)
+    for _ in range(150):  # wraps around the ring
+        buf.add(rng.normal(size=2), rng.normal(size=1), 123.0, rng.normal(size=2), False)
+    buf.relabel(lambda o, a, n: o[:, 0] + 10 * a[:, 0] - n[:, 1], chunk=7)
+    expected = buf.obs[:, 0] + 10 * buf.action[:, 0] - buf.next_obs[:, 1]
+    np.testing.assert_allclose(buf.reward, expected, rtol=1e-6)
+    assert len(buf) == 100 and not np.any(buf.reward == 123.0)
+
+
+def test_sampling_is_reproducible_from_the_generator():
+    buf = ReplayBuffer(1, 1, 50)
+    for i in range(50):
+        buf.add([i], [0], i, [i], False)
+    a = buf.sample(8, np.random.default_rng(3))["reward"]
+    b = buf.sample(8, np.random.default_rng(3))["reward"]
+    torch.testing.assert_close(a, b)
+
+
+def test_buffer_state_round_trip():
+    buf = ReplayBuffer(2, 1, 20)
+    for i in range(25):
+        buf.add([i, i], [i], i, [i + 1, i + 1], i % 3 == 0)
+    copy = ReplayBuffer(2, 1, 20)
+    copy.load_state_dict(buf.state_dict())
+    assert (copy.size, copy.cursor) == (buf.size, buf.cursor)
+    np.testing.assert_array_equal(copy.reward, buf.reward)

@@ -1,0 +1,100 @@
+"""Victim training: each method runs, checkpoints, and resumes after an interruption."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from rat.agents.sac import SACConfig
+from rat.checkpoint import load_checkpoint
+from rat.errors import RatError
+from rat.victims import load_victim
+from rat.victims import training
+from rat.victims.training import VictimConfig, train_victim
+
+TINY_BC = VictimConfig(task="drawer-close-v3", method="bc", demo_episodes=4, demo_episode_steps=100,
+                       bc_updates=400, bc_batch=64, hidden=32, layers=2, eval_episodes=2, checkpoint_every=100)
+TINY_SAC = VictimConfig(task="drawer-close-v3", method="sac", hidden=32, layers=2, total_steps=600, random_steps=200,
+                        sac=SACConfig(batch_size=64), eval_episodes=1, checkpoint_every=250, eval_every=10**6)
+
+
+class Interrupt(Exception):
+    pass
+
+
+def test_bc_resumes_after_interruption_and_matches_an_uninterrupted_run(tmp_path, monkeypatch):
+    whole, _ = train_victim(TINY_BC, tmp_path / "whole", progress=False)
+
+    real = training.behaviour_clone
+
+    def interrupted(*args, **kwargs):
+        on_chunk = args[7]  # behaviour_clone(actor, demos, updates, batch, optimizer, rng, start, on_chunk)
+
+        def stop_after_250(update, loss):
+            if update > 250:  # killed before update 300's checkpoint is written
+                raise Interrupt
+            on_chunk(update, loss)
+
+        args = list(args)
+        args[7] = stop_after_250
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(training, "behaviour_clone", interrupted)
+    with pytest.raises(Interrupt):
+        train_victim(TINY_BC, tmp_path / "resumed", progress=False)
+    _, meta = load_checkpoint(tmp_path / "resumed" / "checkpoint")
+    assert meta["update"] == 200  # the last checkpoint before the interruption
+    monkeypatch.setattr(training, "behaviour_clone", real)
+    resumed, _ = train_victim(TINY_BC, tmp_path / "resumed", progress=False)
+
+    obs = torch.randn(32, 39)
+    torch.testing.assert_close(load_victim(str(resumed)).act(obs), load_victim(str(whole)).act(obs))
+
+
+def test_sac_resumes_from_its_last_checkpoint(tmp_path, monkeypatch):
+    real_update = training.SAC.update
+    calls = {"n": 0}
+
+    def update_then_die(self, batch):
+        calls["n"] += 1
+        if calls["n"] == 300:  # updates start at step 200, so this is step 499: last checkpoint at 250
+            raise Interrupt
+        return real_update(self, batch)
+
+    monkeypatch.setattr(training.SAC, "update", update_then_die)
+    with pytest.raises(Interrupt):
+        train_victim(TINY_SAC, tmp_path / "run", progress=False)
+    state, meta = load_checkpoint(tmp_path / "run" / "checkpoint")
+    assert meta["step"] == 250 and state["buffer"]["meta"][0] == 250
+    assert state["optimizers"]["updates"] == 250 - 200 + 1  # one update per step from step 200 on
+
+    monkeypatch.setattr(training.SAC, "update", real_update)
+    path, result = train_victim(TINY_SAC, tmp_path / "run", progress=False)
+    _, meta = load_checkpoint(tmp_path / "run" / "checkpoint")
+    assert meta["step"] == 500  # the last periodic checkpoint of the finished run
+    assert result.episodes == 1 and path.with_suffix(".safetensors").exists()
+    rows = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
+    assert any(r.startswith("600,") for r in rows)  # the run reached its last step
+
+
+def test_sac_demo_warm_start_fills_the_buffer_with_demonstrations(tmp_path):
+    cfg = replace(TINY_SAC, method="sac-demo", demo_episodes=2, demo_episode_steps=100, bc_updates=50,
+                  total_steps=250, checkpoint_every=250)
+    train_victim(cfg, tmp_path / "run", progress=False)
+    state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
+    assert state["buffer"]["meta"][0] == 200 + 250  # 2 demonstrations of 100 steps, then 250 SAC steps
+    assert state["optimizers"]["updates"] > 0
+
+
+def test_a_run_directory_refuses_a_different_configuration(tmp_path):
+    train_victim(replace(TINY_BC, bc_updates=100), tmp_path / "run", progress=False)
+    with pytest.raises(RatError, match="differs in: bc_updates"):
+        train_victim(TINY_BC, tmp_path / "run", progress=False)
+
+
+def test_bad_training_options_are_rejected():
+    with pytest.raises(RatError, match="unknown victim method"):
+        VictimConfig(method="magic")
+    with pytest.raises(RatError, match="total-steps must be positive"):
+        VictimConfig(total_steps=-5)
