@@ -89,3 +89,39 @@ def test_negative_numbers(capsys, tmp_path):
                       "--episodes must be positive")
     assert_user_error(*run(capsys, "victim", "train", "--task", "drawer-open-v3", "--bc-updates", "-1",
                            "--out", str(tmp_path / "r"))[::2], "bc-updates must be positive")
+
+
+def test_intention_train_reports_success_reward_quality_and_plots(capsys, tmp_path):
+    out = tmp_path / "run"
+    code, text, err = run(capsys, "intention", "train", "--task", "drawer-open-v3", "--target", "reach",
+                          "--steps", "1000", "--seed-steps", "100", "--pretrain-steps", "300", "--budget", "40",
+                          "--per-round", "20", "--every", "300", "--batch-size", "32", "--reward-epochs", "3", "--eval-every", "500",
+                          "--out", str(out))
+    assert code == 0, err
+    assert "target success of the intention policy" in text and "preference accuracy" in text
+    for name in ("report.json", "reward_quality.png", "training.png", "labels.sqlite", "metrics.csv", "config.json"):
+        assert (out / name).exists(), name
+    report = __import__("json").loads((out / "report.json").read_text())
+    assert report["queries_asked"] == 40 and report["labels"] == 40
+
+    code, text, err = run(capsys, "labels", "list", str(out / "labels.sqlite"), "--show", "2")
+    assert code == 0 and "40 labels, 40 queries asked in 2 rounds" in text
+    code, text, _ = run(capsys, "labels", "export", str(out / "labels.sqlite"), str(tmp_path / "set.sqlite"))
+    assert code == 0 and "exported 40 labels" in text
+    code, text, _ = run(capsys, "labels", "import", str(tmp_path / "other.sqlite"), str(tmp_path / "set.sqlite"))
+    assert code == 0 and "imported 40 labels" in text
+
+
+def test_label_commands_refuse_missing_or_broken_stores(capsys, tmp_path):
+    assert_user_error(*run(capsys, "labels", "list", str(tmp_path / "none.sqlite"))[::2], "no label store")
+    (tmp_path / "bad.sqlite").write_bytes(b"garbage" * 200)
+    assert_user_error(*run(capsys, "labels", "list", str(tmp_path / "bad.sqlite"))[::2], "not a readable label store")
+
+
+def test_intention_bad_inputs(capsys, tmp_path):
+    assert_user_error(*run(capsys, "intention", "train", "--budget", "-5", "--out", str(tmp_path / "a"))[::2],
+                      "budget must not be negative")
+    assert_user_error(*run(capsys, "intention", "train", "--strategy", "best", "--out", str(tmp_path / "b"))[::2],
+                      "unknown query strategy 'best'")
+    assert_user_error(*run(capsys, "intention", "train", "--target", "fly", "--out", str(tmp_path / "c"))[::2],
+                      "unknown target behaviour")

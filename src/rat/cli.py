@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -149,6 +148,114 @@ def victim_zoo(tasks, jobs, dest, work_dir) -> None:
                    f"over {row['episodes']} episodes")
 
     regenerate_zoo(VictimConfig(method="bc"), list(tasks) or None, work_dir, dest or ZOO_DIR, jobs, on_done=report)
+
+
+# --- intention policies and labels -------------------------------------------------------------
+
+
+@cli.group()
+def intention() -> None:
+    """Learn a target behaviour from preference labels (PEBBLE), without a victim."""
+
+
+@intention.command("train")
+@click.option("--task", default="drawer-open-v3", show_default=True, help="the victim's task (sets the environment)")
+@click.option("--target", default="reach", show_default=True, help="target behaviour: reach, opposite, or a registered one")
+@click.option("--budget", type=int, default=3000, show_default=True, help="preference queries in all")
+@click.option("--steps", type=int, default=100_000, show_default=True, help="environment steps")
+@click.option("--per-round", type=int, default=128, show_default=True, help="queries per round")
+@click.option("--every", type=int, default=5000, show_default=True, help="steps between query rounds")
+@click.option("--strategy", default="disagreement", show_default=True,
+              help="query strategy: uniform, disagreement, entropy, kcenter, kcenter-disagreement, kcenter-entropy")
+@click.option("--seed-steps", type=int, default=1000, show_default=True, help="uniform random steps first")
+@click.option("--pretrain-steps", type=int, default=9000, show_default=True,
+              help="state-entropy pre-training steps; the first query round follows")
+@click.option("--batch-size", type=int, default=1024, show_default=True, help="SAC batch size")
+@click.option("--reward-epochs", type=int, default=200, show_default=True, help="reward-model epochs per round, at most")
+@click.option("--eval-every", type=int, default=10_000, show_default=True, help="steps between evaluations")
+@click.option("--teacher-mistake", type=float, default=0.0, show_default=True, help="scripted teacher's mistake rate")
+@click.option("--teacher-beta", type=float, default=None, help="Boltzmann rationality (default: perfectly rational)")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/intention-...]")
+@click.option("--tensorboard", is_flag=True, help="also log to TensorBoard")
+def intention_train(task, target, budget, steps, per_round, every, strategy, seed_steps, pretrain_steps, batch_size,
+                    reward_epochs, eval_every, teacher_mistake, teacher_beta, seed, out, tensorboard) -> None:
+    """Train an intention policy for TARGET from scripted preference labels; resumes with the same --out."""
+    from dataclasses import replace
+
+    from rat.preferences.intention import IntentionConfig, train_intention
+    from rat.preferences.pebble import PebbleConfig
+    from rat.preferences.reward_model import RewardModelConfig
+    from rat.preferences.teacher import TeacherConfig
+
+    base = PebbleConfig()
+    pebble = PebbleConfig(sac=replace(base.sac, batch_size=batch_size), budget=budget, per_round=per_round,
+                          feedback_every=every, strategy=strategy, seed_steps=seed_steps,
+                          unsupervised_steps=pretrain_steps, reward=RewardModelConfig(max_epochs=reward_epochs),
+                          teacher=TeacherConfig(beta=teacher_beta, mistake=teacher_mistake))
+    config = IntentionConfig(task=task, target=target, seed=seed, total_steps=steps, pebble=pebble,
+                             eval_every=eval_every)
+    out = out or Path("runs") / f"intention-{task}-{target}-{budget}-{seed}"
+    report = train_intention(config, out, progress=True, tensorboard=tensorboard)
+    lo, hi = report["target_success_ci"]
+    click.echo(f"target success of the intention policy: {100 * report['target_success_rate']:.1f}% "
+               f"(95% CI {100 * lo:.1f}-{100 * hi:.1f}%, {report['final_eval_episodes']} episodes)")
+    click.echo(f"learned reward: preference accuracy {100 * report['preference_accuracy']:.1f}% on "
+               f"{report['held_out_pairs']} held-out pairs; Pearson r with the true reward {report['reward_pearson']:.2f}")
+    click.echo(f"labels: {report['labels']} of {report['queries_asked']} queries asked; run: {out} "
+               "(report.json, reward_quality.png, training.png, labels.sqlite)")
+
+
+@cli.group()
+def labels() -> None:
+    """List, export and import preference labels (SQLite label stores)."""
+
+
+def _open_store(path: Path):
+    from rat.preferences.store import LabelStore
+
+    if not path.exists():
+        raise RatError(f"no label store at '{path}'; a run keeps its labels in <run>/labels.sqlite")
+    return LabelStore(path)
+
+
+@labels.command("list")
+@click.argument("store", type=click.Path(path_type=Path))
+@click.option("--source", default=None, help="only this run's labels")
+@click.option("--show", type=int, default=10, show_default=True, help="labels to print")
+def labels_list(store, source, show) -> None:
+    """Summarise the labels in STORE and print the first few."""
+    with _open_store(store) as s:
+        for src, n in s.sources():
+            rounds = s.rounds(src)
+            click.echo(f"{src}: {n} labels, {sum(r['asked'] for r in rounds)} queries asked in {len(rounds)} rounds")
+        labels = s.read(source)
+        for row in labels.rows[:show]:
+            who = row["labeller"].get("type", "?")
+            click.echo(f"  #{row['id']:<6} {row['created_at']}  {row['task']}/{row['target']}  round {row['round']}  "
+                       f"label {row['label']:.1f}  by {who}")
+
+
+@labels.command("export")
+@click.argument("store", type=click.Path(path_type=Path))
+@click.argument("dest", type=click.Path(path_type=Path))
+@click.option("--source", default=None, help="only this run's labels")
+def labels_export(store, dest, source) -> None:
+    """Copy the labels of STORE into a new store file DEST."""
+    with _open_store(store) as s:
+        click.echo(f"exported {s.export_to(dest, source)} labels to {dest}")
+
+
+@labels.command("import")
+@click.argument("store", type=click.Path(path_type=Path))
+@click.argument("src", type=click.Path(path_type=Path))
+@click.option("--source", default=None, help="file the imported labels under this source name")
+def labels_import(store, src, source) -> None:
+    """Add every label of store file SRC to STORE (created if missing)."""
+    from rat.preferences.store import LabelStore
+
+    with LabelStore(store) as s:
+        click.echo(f"imported {s.import_from(src, source)} labels into {store}")
 
 
 # --- entry point -----------------------------------------------------------------------------------

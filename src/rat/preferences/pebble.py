@@ -1,0 +1,223 @@
+"""PEBBLE: SAC on a reward learned from preferences, with unsupervised pre-training.
+
+:class:`PebbleLearner` owns the intention policy (SAC), its replay buffer, the reward
+ensemble and the query schedule. It does not own an environment: whoever collects data calls
+:meth:`PebbleLearner.observe` with each transition (the intention-policy trainer acts with
+:meth:`PebbleLearner.act`; RAT acts with its combined behaviour policy), and the learner does
+the rest, by environment step:
+
+1. steps ``[0, seed_steps)``: uniform random actions, no updates;
+2. steps ``[seed_steps, first round)``: SAC on the state-entropy intrinsic reward;
+3. the first round: uniform queries, reward training, relabel the whole buffer, reset the
+   critic, ``reset_updates`` SAC updates;
+4. then every ``feedback_every`` steps while the budget lasts: a round of ``per_round``
+   queries chosen by ``strategy`` from ``candidates_factor × per_round`` candidates, reward
+   training, relabelling of the whole buffer; SAC on r̂ throughout.
+
+Every label goes to a :class:`~rat.preferences.store.LabelStore` as it arrives.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from rat.agents.buffer import ReplayBuffer
+from rat.agents.exploration import RunningMeanStd, state_entropy_reward
+from rat.agents.sac import SAC, SACConfig
+from rat.errors import RatError
+from rat.preferences.queries import STRATEGIES, pair_features, select_queries
+from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig
+from rat.preferences.schedule import FeedbackSchedule
+from rat.preferences.segments import EpisodeHistory
+from rat.preferences.store import LabelStore
+from rat.preferences.teacher import ScriptedTeacher, TeacherConfig
+
+
+def _intention_sac() -> SACConfig:
+    return SACConfig(lr=3e-4, alpha_lr=1e-4, init_temperature=0.1, batch_size=1024)
+
+
+@dataclass(frozen=True)
+class PebbleConfig:
+    """PEBBLE settings (defaults: the paper's appendix A.3 and ``algorithm.md`` §2)."""
+
+    sac: SACConfig = field(default_factory=_intention_sac)  #: intention policy's SAC
+    seed_steps: int = 1_000  #: uniform random actions first
+    unsupervised_steps: int = 9_000  #: state-entropy pre-training after the seed steps
+    budget: int = 3_000  #: preference queries in all
+    feedback_every: int = 5_000  #: steps between query rounds after the first
+    per_round: int = 128  #: queries per round
+    candidates_factor: int = 10  #: candidates drawn per query asked
+    first_strategy: str = "uniform"  #: query strategy of the first round
+    strategy: str = "disagreement"  #: query strategy of later rounds
+    segment_length: int = 50  #: steps per segment
+    max_episodes: int = 100  #: recent episodes segments are drawn from
+    reward: RewardModelConfig = field(default_factory=RewardModelConfig)  #: reward ensemble
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)  #: scripted teacher's noise
+    entropy_k: int = 5  #: k of the k-NN state entropy
+    reset_updates: int = 100  #: SAC updates right after the critic reset
+    updates_per_step: int = 1  #: SAC updates per environment step
+    buffer_capacity: int = 1_000_000  #: replay buffer size
+
+    def __post_init__(self):
+        for name in ("seed_steps", "unsupervised_steps", "reset_updates", "updates_per_step"):
+            if getattr(self, name) < 0:
+                raise RatError(f"{name.replace('_', '-')} must not be negative, got {getattr(self, name)}")
+        for name in ("segment_length", "candidates_factor", "max_episodes", "buffer_capacity"):
+            if getattr(self, name) <= 0:
+                raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        for name in ("first_strategy", "strategy"):
+            if getattr(self, name) not in STRATEGIES:
+                raise RatError(f"unknown query strategy '{getattr(self, name)}'; use one of: {', '.join(STRATEGIES)}")
+        self.schedule  # validates budget and round settings
+
+    @property
+    def schedule(self) -> FeedbackSchedule:
+        """Query rounds: the first right after pre-training, then every ``feedback_every`` steps."""
+        return FeedbackSchedule(self.budget, self.seed_steps + self.unsupervised_steps, self.feedback_every,
+                                self.per_round)
+
+
+class PebbleLearner:
+    """The intention policy and everything PEBBLE trains around it.
+
+    Args:
+        obs_dim, act_dim: sizes of the environment's observations and actions.
+        config: PEBBLE settings.
+        store: where labels go (and come back from on resume).
+        source: this run's name in the store.
+        rng: the run's random generator (segments, queries, batches, teacher noise).
+        teacher: who labels; default: a scripted teacher with ``config.teacher``.
+        task, target: recorded with every label.
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, config: PebbleConfig, store: LabelStore, source: str,
+                 rng: np.random.Generator, teacher: ScriptedTeacher | None = None, task: str | None = None,
+                 target: str | None = None):
+        self.config, self.store, self.source, self.rng = config, store, source, rng
+        self.task, self.target = task, target
+        self.teacher = teacher or ScriptedTeacher(config.teacher)
+        self.agent = SAC(obs_dim, act_dim, config.sac)
+        self.buffer = ReplayBuffer(obs_dim, act_dim, config.buffer_capacity)
+        self.history = EpisodeHistory(config.max_episodes)
+        self.ensemble = RewardEnsemble(obs_dim, act_dim, config.reward)
+        self.entropy_stats = RunningMeanStd()
+        self.schedule = config.schedule
+        self.step = 0  # environment steps observed
+        self.asked = 0  # queries counted against the budget
+        self.round = 0  # query rounds done
+        self.act_dim = act_dim
+
+    @property
+    def reward_ready(self) -> bool:
+        """Whether r̂ has been trained at least once (before that, stored rewards are 0)."""
+        return self.round > 0
+
+    @property
+    def pretraining(self) -> bool:
+        return self.step < self.schedule.first_step
+
+    # --- acting and observing -----------------------------------------------------------------
+
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """The intention policy's action (uniform random during the seed steps)."""
+        if self.step < self.config.seed_steps and not deterministic:
+            return self.rng.uniform(-1.0, 1.0, self.act_dim).astype(np.float32)
+        return self.agent.act(obs, deterministic)
+
+    def observe(self, obs, action, next_obs, target_reward: float, terminated: bool, truncated: bool
+                ) -> dict[str, float]:
+        """Take one transition (with its true target reward, for the scripted teacher) and learn."""
+        reward = float(self.ensemble.r_hat(obs, action)) if self.reward_ready else 0.0
+        self.buffer.add(obs, action, reward, next_obs, terminated)
+        self.history.add(obs, action, target_reward, terminated or truncated)
+        self.step += 1
+        metrics: dict[str, float] = {}
+        n = self.schedule.queries_at(self.step, self.asked)
+        if n > 0:
+            metrics.update(self.query_round(n))
+        if self.step >= self.config.seed_steps:
+            for _ in range(self.config.updates_per_step):
+                metrics.update(self.update())
+        return metrics
+
+    # --- learning ------------------------------------------------------------------------------
+
+    def update(self) -> dict[str, float]:
+        """One SAC update: on the intrinsic reward during pre-training, on r̂ afterwards."""
+        batch = self.buffer.sample(min(self.config.sac.batch_size, len(self.buffer)), self.rng)
+        if self.pretraining:
+            pool = torch.as_tensor(self.buffer.obs[: len(self.buffer)])
+            batch["reward"] = state_entropy_reward(batch["obs"], pool, self.entropy_stats, self.config.entropy_k)
+        return self.agent.update(batch)
+
+    def segment_return_scale(self) -> float:
+        """Mean true target return of a segment in the stored episodes (the teacher's threshold scale)."""
+        L = self.config.segment_length
+        return float(np.mean([e[2].sum() * L / len(e[2]) for e in self.history.episodes]))
+
+    def query_round(self, n: int) -> dict[str, float]:
+        """Ask ``n`` queries (or reuse the round's labels if the store has them), train r̂, relabel."""
+        done = {r["round"]: r for r in self.store.rounds(self.source)}
+        if self.round in done:  # this round finished before an interruption: its labels are in the store
+            asked = done[self.round]["asked"]
+        else:
+            cfg = self.config
+            candidates = self.history.sample_pairs(n * cfg.candidates_factor, cfg.segment_length, self.rng)
+            strategy = cfg.first_strategy if self.round == 0 else cfg.strategy
+            labelled = None
+            if strategy.startswith("kcenter") and self.store.count(self.source):
+                labelled = pair_features(self.store.read(self.source).pairs)
+            chosen = candidates.select(select_queries(strategy, candidates, n, self.ensemble, self.rng, labelled))
+            self.teacher.set_scale(self.segment_return_scale())
+            labels = self.teacher.label(chosen, self.rng)
+            self.store.add(chosen.select(labels.index), labels.y, self.teacher.describe(), self.source,
+                           round=self.round, task=self.task, target=self.target, step=self.step, asked=n)
+            asked = n
+        self.asked += asked
+        first = self.round == 0
+        self.round += 1
+        metrics = self.train_reward()
+        metrics.update({"labels": float(self.store.count(self.source)), "queries_asked": float(self.asked)})
+        if first:
+            self.agent.reset_critic()
+            for _ in range(self.config.reset_updates):
+                self.update()
+        return metrics
+
+    def train_reward(self) -> dict[str, float]:
+        """Train the ensemble on every label of this run, then relabel the whole replay buffer."""
+        labels = self.store.read(self.source)
+        if len(labels) == 0:
+            return {}
+        p = labels.pairs
+        metrics = self.ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, labels.y, self.rng)
+        self.buffer.relabel(lambda o, a, _: self.ensemble.r_hat(o, a))
+        return metrics
+
+    # --- checkpoints ----------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        return {
+            "agent": self.agent.state_dict(), "agent_optimizers": self.agent.optimizer_state(),
+            "ensemble": self.ensemble.state_dict(), "ensemble_optimizers": self.ensemble.optimizer_state(),
+            "buffer": self.buffer.state_dict(), "history": self.history.state_dict(),
+            "entropy_stats": self.entropy_stats.state_dict(),
+            "counters": {"step": self.step, "asked": self.asked, "round": self.round},
+            "teacher_scale": self.teacher.scale,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.agent.load_optimizer_state(state["agent_optimizers"])
+        self.ensemble.load_state_dict(state["ensemble"])
+        self.ensemble.load_optimizer_state(state["ensemble_optimizers"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.history.load_state_dict(state["history"])
+        self.entropy_stats.load_state_dict(state["entropy_stats"])
+        c = state["counters"]
+        self.step, self.asked, self.round = int(c["step"]), int(c["asked"]), int(c["round"])
+        self.teacher.set_scale(float(state["teacher_scale"]))

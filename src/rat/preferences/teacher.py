@@ -1,0 +1,98 @@
+"""The scripted teacher of B-Pref: prefers the segment with the larger sum of target reward.
+
+**Label convention (the one used everywhere in rat).** A label ``y`` is the probability that
+the *second* segment of the pair (σ¹) is preferred: ``y = 1`` means σ¹ ≻ σ⁰, ``y = 0`` means
+σ⁰ ≻ σ¹, ``y = 0.5`` means "equally good". This is B-Pref's convention (its label 1 = second
+segment wins); the ``imitation`` library uses the opposite one.
+
+Noise options (B-Pref, Lee et al. 2021):
+
+- ``beta``: Boltzmann rationality; ``P(σ¹ ≻ σ⁰) = sigmoid(beta (R¹ − R⁰))``. ``None`` = rational.
+- ``gamma``: myopia; step t of a length-L segment weighs ``gamma^(L−1−t)`` (recent steps count more).
+- ``mistake``: probability of flipping a (non-equal) label.
+- ``skip``: drop the query when both segments' returns are below ``skip × scale``.
+- ``equal``: label 0.5 when ``|R¹ − R⁰| < equal × scale``.
+
+``scale`` is the typical segment return (B-Pref: the mean true episode return times
+``length / horizon``), set with :meth:`ScriptedTeacher.set_scale`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from rat.errors import RatError
+from rat.preferences.segments import SegmentPairs
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    """Settings of the scripted teacher (defaults: a perfectly rational, noise-free teacher)."""
+
+    beta: float | None = None  #: Boltzmann rationality; None = always prefer the larger return
+    gamma: float = 1.0  #: myopic discount of earlier steps
+    mistake: float = 0.0  #: probability of a flipped label
+    skip: float = 0.0  #: skip threshold, as a fraction of the segment-return scale
+    equal: float = 0.0  #: equal-preference threshold, as a fraction of the segment-return scale
+
+    def __post_init__(self):
+        if not 0.0 <= self.mistake <= 1.0:
+            raise RatError(f"teacher mistake rate must lie in [0, 1], got {self.mistake}")
+        if not 0.0 < self.gamma <= 1.0:
+            raise RatError(f"teacher gamma must lie in (0, 1], got {self.gamma}")
+        if self.skip < 0 or self.equal < 0 or (self.beta is not None and self.beta < 0):
+            raise RatError("teacher beta, skip and equal must not be negative")
+
+
+@dataclass
+class Labels:
+    """The answered queries: ``index`` into the pairs asked, and the label ``y`` of each."""
+
+    index: np.ndarray  # [m] int
+    y: np.ndarray  # [m] float in {0, 0.5, 1} (or Boltzmann draws)
+
+
+def segment_returns(reward: np.ndarray, gamma: float) -> np.ndarray:
+    """Myopically discounted sums ``sum_t gamma^(L-1-t) r_t`` over the last axis."""
+    length = reward.shape[-1]
+    weights = gamma ** np.arange(length - 1, -1, -1, dtype=np.float64)
+    return (reward * weights).sum(-1)
+
+
+class ScriptedTeacher:
+    """Labels segment pairs from their true target reward, with B-Pref's noise options."""
+
+    def __init__(self, config: TeacherConfig = TeacherConfig()):
+        self.config = config
+        self.scale = 0.0
+
+    def set_scale(self, segment_return_scale: float) -> None:
+        """Set the typical segment return that the skip and equal thresholds are fractions of."""
+        self.scale = float(abs(segment_return_scale))
+
+    def describe(self) -> dict:
+        """Who labelled: JSON-able, stored with every label."""
+        return {"type": "scripted", **asdict(self.config), "scale": self.scale}
+
+    def label(self, pairs: SegmentPairs, rng: np.random.Generator) -> Labels:
+        cfg = self.config
+        r0 = segment_returns(pairs.reward0, cfg.gamma)
+        r1 = segment_returns(pairs.reward1, cfg.gamma)
+        if np.isnan(r0).any() or np.isnan(r1).any():
+            raise RatError("a scripted teacher needs the true target reward of every segment step")
+        keep = np.arange(len(pairs))
+        if cfg.skip > 0:
+            keep = keep[np.maximum(r0, r1) > cfg.skip * self.scale]
+        r0, r1 = r0[keep], r1[keep]
+        if cfg.beta is None:
+            y = (r1 > r0).astype(np.float64)
+        else:
+            p_second = 1.0 / (1.0 + np.exp(-cfg.beta * (r1 - r0)))
+            y = (rng.random(len(keep)) < p_second).astype(np.float64)
+        flip = rng.random(len(keep)) < cfg.mistake
+        y[flip] = 1.0 - y[flip]
+        if cfg.equal > 0:
+            y[np.abs(r1 - r0) < cfg.equal * self.scale] = 0.5
+        return Labels(keep, y)

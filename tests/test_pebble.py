@@ -1,0 +1,96 @@
+"""The PEBBLE learner driven by a small environment shipped with the tests."""
+
+import numpy as np
+import pytest
+import torch
+
+from rat.agents.sac import SACConfig
+from rat.preferences.pebble import PebbleConfig, PebbleLearner
+from rat.preferences.reward_model import RewardModelConfig
+from rat.preferences.store import LabelStore
+
+
+class Drift:
+    """A point in the plane moved by the action; episodes of 60 steps; target reward = x-progress."""
+
+    def __init__(self, rng):
+        self.rng, self.t = rng, 0
+
+    def reset(self):
+        self.x, self.t = self.rng.uniform(-1, 1, 2).astype(np.float32), 0
+        return self.x.copy()
+
+    def step(self, a):
+        prev = self.x.copy()
+        self.x = np.clip(self.x + 0.1 * np.asarray(a[:2]), -2, 2).astype(np.float32)
+        self.t += 1
+        return self.x.copy(), float(self.x[0] - prev[0]), self.t >= 60
+
+
+def tiny_config(**kw):
+    base = dict(sac=SACConfig(hidden=32, layers=2, batch_size=64, lr=1e-3), seed_steps=60, unsupervised_steps=180,
+                budget=70, per_round=30, feedback_every=120, segment_length=10, candidates_factor=4,
+                reward=RewardModelConfig(hidden=32, layers=2, max_epochs=5), reset_updates=10, buffer_capacity=5000)
+    base.update(kw)
+    return PebbleConfig(**base)
+
+
+def drive(learner, env, steps, interrupt_at=None):
+    obs = env.reset()
+    while learner.step < steps:
+        action = learner.act(obs)
+        next_obs, r, end = env.step(action)
+        learner.observe(obs, action, next_obs, r, terminated=False, truncated=end)
+        obs = env.reset() if end else next_obs
+        if interrupt_at is not None and learner.step == interrupt_at:
+            return
+
+
+def make(tmp_path, config, name="run"):
+    rng = np.random.default_rng(0)
+    store = LabelStore(tmp_path / "labels.sqlite")
+    return PebbleLearner(2, 2, config, store, name, rng), Drift(np.random.default_rng(1))
+
+
+def test_budget_is_spent_exactly_and_recorded_round_by_round(tmp_path):
+    learner, env = make(tmp_path, tiny_config())
+    drive(learner, env, 700)
+    rounds = learner.store.rounds("run")
+    assert learner.asked == 70 and sum(r["asked"] for r in rounds) == 70
+    assert [(r["step"], r["asked"]) for r in rounds] == [(240, 30), (360, 30), (480, 10)]
+    assert learner.store.count("run") == sum(r["answered"] for r in rounds) == 70
+
+
+def test_after_a_round_every_stored_reward_is_the_learned_reward_and_the_critic_was_reset(tmp_path):
+    learner, env = make(tmp_path, tiny_config(budget=30))
+    drive(learner, env, 239)
+    critic_before = learner.agent.critic
+    assert np.all(learner.buffer.reward[: len(learner.buffer)] == 0.0)  # no r̂ before the first round
+    drive(learner, env, 240)  # the first query round happens at step 240
+    assert learner.agent.critic is not critic_before  # reset
+    assert learner.ensemble.rounds == 1 and learner.agent.updates > 180
+    n = len(learner.buffer)
+    np.testing.assert_allclose(learner.buffer.reward[:n], learner.ensemble.r_hat(learner.buffer.obs[:n],
+                                                                                  learner.buffer.action[:n]), rtol=1e-5)
+
+
+def test_pretraining_updates_use_the_intrinsic_reward(tmp_path):
+    learner, env = make(tmp_path, tiny_config())
+    drive(learner, env, 100)
+    assert learner.agent.updates == 100 - 60 + 1 and learner.entropy_stats.count > 1  # updates ran, on r_int
+
+
+def test_a_resumed_learner_reuses_stored_labels_and_asks_nothing_twice(tmp_path):
+    cfg = tiny_config()
+    learner, env = make(tmp_path, cfg)
+    drive(learner, env, 300)
+    state = learner.state_dict()  # a checkpoint at step 300: one round done
+    drive(learner, env, 400)  # a second round is stored ...
+    learner.store.close()  # ... then the process dies
+
+    resumed, env2 = make(tmp_path, cfg)
+    resumed.load_state_dict(state)
+    assert resumed.step == 300 and resumed.asked == 30
+    drive(resumed, env2, 700)
+    assert resumed.asked == 70 and resumed.store.count("run") == 70  # the second round's labels were reused
+    assert [r["round"] for r in resumed.store.rounds("run")] == [0, 1, 2]
