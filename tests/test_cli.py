@@ -125,3 +125,36 @@ def test_intention_bad_inputs(capsys, tmp_path):
                       "unknown query strategy 'best'")
     assert_user_error(*run(capsys, "intention", "train", "--target", "fly", "--out", str(tmp_path / "c"))[::2],
                       "unknown target behaviour")
+
+
+def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
+    from dataclasses import replace
+
+    from rat.agents.sac import SACConfig
+    from rat.attacks.presets import rat_config, train_attack
+    from rat.preferences.reward_model import RewardModelConfig
+
+    cfg = rat_config("cpu", budget=40, steps=900, adversary_hidden=32, adversary_every=100, adversary_batch=64,
+                     weighting_every=300, eval_every=450, eval_episodes=1, final_eval_episodes=2, checkpoint_every=500)
+    cfg = replace(cfg, pebble=replace(cfg.pebble, sac=SACConfig(hidden=32, layers=2, batch_size=32), seed_steps=100,
+                                      unsupervised_steps=300, per_round=20, feedback_every=300,
+                                      reward=RewardModelConfig(hidden=32, layers=2, max_epochs=3)))
+    report = train_attack("zoo:drawer-open-v3", "reach", cfg, tmp_path / "run", progress=False)
+    assert report["labels"] == 40 and report["adversary_updates"] > 0 and report["weighting_updates"] > 0
+    assert report["max_perturbation"] <= 0.1 + 1e-9
+
+    code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "2", "--json")
+    assert code == 0, err
+    result = __import__("json").loads(out)
+    assert result["within_budget"] and result["task"] == "drawer-open-v3" and result["target"] == "reach"
+    assert result["clean_target_success_rate"] == 0.0  # the clean victim opens the drawer; it never reaches the goal
+
+
+def test_attack_bad_inputs(capsys, tmp_path):
+    assert_user_error(*run(capsys, "attack", "train", "--victim", "zoo:nope-v3", "--out", str(tmp_path / "a"))[::2],
+                      "no zoo victim for 'nope-v3'")
+    assert_user_error(*run(capsys, "attack", "train", "--epsilon", "-0.1", "--out", str(tmp_path / "b"))[::2],
+                      "epsilon must be a finite number >= 0")
+    assert_user_error(*run(capsys, "attack", "train", "--budget", "-3", "--out", str(tmp_path / "c"))[::2],
+                      "budget must not be negative")
+    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path))[::2], "no checkpoint at")

@@ -258,6 +258,78 @@ def labels_import(store, src, source) -> None:
         click.echo(f"imported {s.import_from(src, source)} labels into {store}")
 
 
+# --- attacks ---------------------------------------------------------------------------------------
+
+
+@cli.group()
+def attack() -> None:
+    """Train and evaluate targeted behaviour attacks (RAT)."""
+
+
+@attack.command("train")
+@click.option("--victim", "victim_spec", default="zoo:drawer-open-v3", show_default=True,
+              help="zoo:<task>, a Stable-Baselines3 .zip, or a victim checkpoint")
+@click.option("--target", default="reach", show_default=True,
+              help="reach (manipulation scenario), opposite (opposite behaviour), or a registered target")
+@click.option("--epsilon", type=float, default=0.1, show_default=True, help="budget, raw observation units")
+@click.option("--norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]), default="linf", show_default=True)
+@click.option("--budget", type=int, default=3000, show_default=True, help="preference labels (queries) in all")
+@click.option("--preset", type=click.Choice(["cpu", "paper"]), default="cpu", show_default=True,
+              help="cpu: 5e4 steps, batches of 256 (this machine); paper: 1e6 steps, batch 1024 (a GPU)")
+@click.option("--steps", type=int, default=None, help="environment steps [the preset's]")
+@click.option("--ablation", type=click.Choice(["none", "no-weighting", "no-combined", "no-intention"]), default="none",
+              show_default=True, help="the paper's table 4 (see the README)")
+@click.option("--kl-form", type=click.Choice(["exact", "released"]), default="exact", show_default=True)
+@click.option("--hypergradient", type=click.Choice(["exact", "batch-mean"]), default="exact", show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/attack-...]")
+@click.option("--video/--no-video", default=True, show_default=True, help="record two attacked episodes")
+@click.option("--tensorboard", is_flag=True)
+def attack_train(victim_spec, target, epsilon, norm, budget, preset, steps, ablation, kl_form, hypergradient, seed, out,
+                 video, tensorboard) -> None:
+    """Train a RAT adversary; re-running with the same --out resumes an interrupted run."""
+    from rat.attacks.presets import evaluate_saved_attack, rat_config, train_attack
+
+    config = rat_config(preset, budget, steps, target, epsilon=epsilon, norm=norm, seed=seed, ablation=ablation,
+                        kl_form=kl_form, hypergradient=hypergradient)
+    out = out or Path("runs") / f"attack-{victim_spec.replace(':', '-').replace('/', '_')}-{target}-{seed}"
+    report = train_attack(victim_spec, target, config, out, progress=True, tensorboard=tensorboard)
+    lo, hi = report["attack_success_ci"]
+    click.echo(f"attack success: {100 * report['attack_success_rate']:.1f}% (95% CI {100 * lo:.1f}-{100 * hi:.1f}%, "
+               f"{report['episodes']} episodes), {report['labels']} labels, {report['steps']} steps; "
+               f"max perturbation {report['max_perturbation']:.4f} <= epsilon {epsilon:g} ({norm})")
+    if video:
+        result = evaluate_saved_attack(out, episodes=2, seed=seed, video=out / "attack.mp4", progress=False)
+        click.echo(f"video of attacked episodes: {out / 'attack.mp4'} "
+                   f"({sum(result['attack'].result.successes)}/2 reach the target)")
+    click.echo(f"plot of success over training: {out / 'training.png'}; report: {out / 'report.json'}")
+
+
+@attack.command("eval")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--episodes", type=int, default=30, show_default=True, help="the paper uses 30")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--video", type=click.Path(path_type=Path), default=None, help="record the first two attacked episodes")
+@click.option("--json", "as_json", is_flag=True)
+def attack_eval(run, episodes, seed, video, as_json) -> None:
+    """Evaluate the adversary of RUN against its victim, beside the victim's clean behaviour."""
+    from rat.attacks.presets import evaluate_saved_attack
+
+    if episodes <= 0:
+        raise RatError(f"--episodes must be positive, got {episodes}")
+    r = evaluate_saved_attack(run, episodes, seed, video)
+    attacked, clean = r["attack"], r["clean"]
+    if as_json:
+        click.echo(json.dumps({k: v for k, v in r.items() if k not in ("attack", "clean")} | {
+            "attack_success_rate": attacked.result.success_rate, "attack_success_ci": attacked.result.success_ci,
+            "clean_target_success_rate": clean.success_rate, "max_perturbation": attacked.max_perturbation,
+            "mean_perturbation": attacked.mean_perturbation, "within_budget": attacked.within_budget}))
+        return
+    click.echo(f"{r['victim']} on {r['task']}, target '{r['target']}'")
+    click.echo(f"  attacked: {attacked.summary()}")
+    click.echo(f"  clean:    {clean.summary()}")
+
+
 # --- entry point -----------------------------------------------------------------------------------
 
 

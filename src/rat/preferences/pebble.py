@@ -160,24 +160,25 @@ class PebbleLearner:
         return float(np.mean([e[2].sum() * L / len(e[2]) for e in self.history.episodes]))
 
     def query_round(self, n: int) -> dict[str, float]:
-        """Ask ``n`` queries (or reuse the round's labels if the store has them), train r̂, relabel."""
-        done = {r["round"]: r for r in self.store.rounds(self.source)}
-        if self.round in done:  # this round finished before an interruption: its labels are in the store
-            asked = done[self.round]["asked"]
-        else:
-            cfg = self.config
-            candidates = self.history.sample_pairs(n * cfg.candidates_factor, cfg.segment_length, self.rng)
-            strategy = cfg.first_strategy if self.round == 0 else cfg.strategy
-            labelled = None
-            if strategy.startswith("kcenter") and self.store.count(self.source):
-                labelled = pair_features(self.store.read(self.source).pairs)
-            chosen = candidates.select(select_queries(strategy, candidates, n, self.ensemble, self.rng, labelled))
-            self.teacher.set_scale(self.segment_return_scale())
-            labels = self.teacher.label(chosen, self.rng)
+        """Ask ``n`` queries, train r̂ on every label so far, relabel the buffer.
+
+        If the store already holds this round (it finished before an interruption), its labels
+        are used and nothing is stored twice; the round still draws its candidates and teacher
+        noise, so a resumed run consumes random numbers exactly as an uninterrupted one.
+        """
+        cfg = self.config
+        candidates = self.history.sample_pairs(n * cfg.candidates_factor, cfg.segment_length, self.rng)
+        strategy = cfg.first_strategy if self.round == 0 else cfg.strategy
+        labelled = None
+        if strategy.startswith("kcenter") and self.store.count(self.source):
+            labelled = pair_features(self.store.read(self.source).pairs)
+        chosen = candidates.select(select_queries(strategy, candidates, n, self.ensemble, self.rng, labelled))
+        self.teacher.set_scale(self.segment_return_scale())
+        labels = self.teacher.label(chosen, self.rng)
+        if self.round not in {r["round"] for r in self.store.rounds(self.source)}:
             self.store.add(chosen.select(labels.index), labels.y, self.teacher.describe(), self.source,
                            round=self.round, task=self.task, target=self.target, step=self.step, asked=n)
-            asked = n
-        self.asked += asked
+        self.asked += n
         first = self.round == 0
         self.round += 1
         metrics = self.train_reward()

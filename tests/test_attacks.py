@@ -1,0 +1,228 @@
+"""Threat model, RAT's losses and hypergradient, gradient isolation, the combined behaviour policy."""
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from point_env import HORIZON, PointGoal, point_victim
+from rat.agents.networks import TanhGaussianActor, TwinCritic
+from rat.agents.sac import SAC, SACConfig
+from rat.attacks.losses import Adversary, WeightingNetwork, gaussian_kl, hypergradient, inner_loss, kl_per_state, outer_loss
+from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, weighting_update
+from rat.attacks.threat import NORMS, AttackedObservation, perturb, perturbation_norm, project, random_delta
+from rat.errors import RatError
+
+# --- threat model ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("norm", NORMS)
+def test_perturbations_stay_in_the_ball_on_random_inputs_at_large_scale(norm):
+    torch.manual_seed(0)
+    obs = torch.randn(20_000, 39, dtype=torch.float64) * 5
+    delta = torch.randn(20_000, 39, dtype=torch.float64) * torch.logspace(-3, 3, 20_000, dtype=torch.float64)[:, None]
+    for eps in (0.0, 1e-3, 0.1, 2.5):
+        diff = (perturb(obs, delta, eps, norm) - obs).numpy()
+        assert perturbation_norm(diff, norm).max() <= eps * (1 + 1e-9) + 1e-12
+    np.testing.assert_array_equal(perturb(obs, delta, 0.0, norm).numpy(), obs.numpy())  # epsilon 0 changes nothing
+
+
+@pytest.mark.parametrize("norm", ["linf", "l2", "l1"])
+def test_projection_leaves_points_inside_the_ball_alone_and_is_the_nearest_point(norm):
+    torch.manual_seed(1)
+    small = torch.rand(100, 6, dtype=torch.float64) * 0.01
+    torch.testing.assert_close(project(small, norm), small)
+    big = torch.randn(200, 6, dtype=torch.float64) * 3
+    p = project(big, norm)
+    # nearest point: no random point of the ball is closer to the input than its projection
+    cands = torch.stack([project(torch.randn(6, dtype=torch.float64) * 2, norm) for _ in range(500)])
+    d_proj = (big - p).norm(dim=1)
+    d_cand = torch.cdist(big, cands).min(1).values
+    assert torch.all(d_proj <= d_cand + 1e-9)
+
+
+def test_l1_projection_matches_a_bisection_on_the_threshold():
+    torch.manual_seed(2)
+    v = torch.randn(50, 9, dtype=torch.float64) * 4
+    got = project(v, "l1")
+    for row, out in zip(v, got):
+        lo, hi = 0.0, float(row.abs().max())
+        for _ in range(200):
+            theta = (lo + hi) / 2
+            lo, hi = (theta, hi) if (row.abs() - theta).clamp(min=0).sum() > 1 else (lo, theta)
+        expected = torch.sign(row) * (row.abs() - theta).clamp(min=0)
+        torch.testing.assert_close(out, expected, atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("norm", NORMS)
+def test_random_attack_is_in_the_unit_ball(norm):
+    rng = np.random.default_rng(0)
+    d = np.array([random_delta(rng, 39, norm) for _ in range(2000)])
+    assert perturbation_norm(d, norm).max() <= 1 + 1e-12
+
+
+def test_the_wrapper_shows_the_attacked_observation_and_keeps_the_true_state():
+    env = AttackedObservation(PointGoal(0), lambda o: np.array([1.0, -1.0, 1.0, 1.0]) * 5, 0.1, "linf")
+    obs, info = env.reset(seed=3)
+    np.testing.assert_allclose(obs - info["true_obs"], [0.1, -0.1, 0.1, 0.1])
+    inner = env.unwrapped
+    np.testing.assert_allclose(info["true_obs"], np.concatenate([inner.p, inner.g]))
+    obs, _, _, _, info = env.step(np.zeros(2))
+    assert info["perturbation_norm"] == pytest.approx(0.1) and max(env.norms) <= 0.1 + 1e-12
+    with pytest.raises(RatError, match="epsilon must be"):
+        AttackedObservation(PointGoal(0), lambda o: o, -0.1)
+    with pytest.raises(RatError, match="unknown norm"):
+        AttackedObservation(PointGoal(0), lambda o: o, 0.1, "l3")
+
+
+# --- KL, hypergradient ------------------------------------------------------------------------------------------
+
+
+def test_gaussian_kl_matches_torch_distributions():
+    torch.manual_seed(0)
+    m1, m2, log_s2 = torch.randn(7, 4), torch.randn(7, 4), torch.randn(7, 4) * 0.5
+    for s1 in (1.0, 0.3):
+        ours = gaussian_kl(m1, s1, m2, log_s2)
+        ref = torch.distributions.kl_divergence(torch.distributions.Normal(m1, torch.full_like(m1, s1)),
+                                                torch.distributions.Normal(m2, log_s2.exp())).sum(-1)
+        torch.testing.assert_close(ours, ref, rtol=1e-5, atol=1e-6)
+    released = gaussian_kl(m1, 1.0, m2, log_s2, form="released")
+    assert not torch.allclose(released, gaussian_kl(m1, 1.0, m2, log_s2))  # the released helper differs
+
+
+class TinyVictim(torch.nn.Module):
+    def __init__(self, obs_dim, act_dim):
+        super().__init__()
+        self.net = torch.nn.Sequential(torch.nn.Linear(obs_dim, 8), torch.nn.Tanh(), torch.nn.Linear(8, act_dim), torch.nn.Tanh())
+
+    def act(self, obs):
+        return self.net(obs)
+
+
+def tiny_problem(dtype=torch.float64):
+    torch.manual_seed(0)
+    d, a = 3, 2
+    parts = dict(adversary=Adversary(d, hidden=6, layers=1), weighting=WeightingNetwork(d, hidden=5),
+                 victim=TinyVictim(d, a), intention=TanhGaussianActor(d, a, 6, 1), critic=TwinCritic(d, a, 6, 1))
+    for m in parts.values():
+        m.to(dtype)
+    parts["victim"].requires_grad_(False)
+    obs_i, obs_o = torch.randn(16, d, dtype=dtype), torch.randn(12, d, dtype=dtype)
+    noise_i, noise_o = torch.randn(16, d, dtype=dtype), torch.randn(12, d, dtype=dtype)
+    return parts, obs_i, noise_i, obs_o, noise_o
+
+
+def test_hypergradient_matches_a_finite_difference():
+    p, obs_i, noise_i, obs_o, noise_o = tiny_problem()
+    temperature, eta, eps = torch.tensor(0.1, dtype=torch.float64), 0.5, 0.3
+    grads = hypergradient(p["adversary"], p["weighting"], p["victim"], p["intention"], p["critic"], temperature, obs_i,
+                          noise_i, obs_o, noise_o, eps, "linf", eta)
+
+    def outer_after_virtual_step():
+        params = {k: v.detach().requires_grad_(True) for k, v in p["adversary"].named_parameters()}
+        kl = kl_per_state(p["adversary"], params, p["victim"], p["intention"], obs_i, noise_i, eps, "linf")
+        with torch.no_grad():
+            w = p["weighting"](obs_i)
+        g = torch.autograd.grad(inner_loss(w, kl), list(params.values()))
+        virtual = {k: v - eta * gi for (k, v), gi in zip(params.items(), g)}
+        with torch.no_grad():
+            return outer_loss(p["adversary"], virtual, p["victim"], p["critic"], temperature, obs_o, noise_o, eps,
+                              "linf").item()
+
+    checked = 0
+    for param, grad in zip(p["weighting"].parameters(), grads):
+        for idx in list(np.ndindex(param.shape))[:4]:
+            old = param[idx].item()
+            values = []
+            for shifted in (old + 1e-6, old - 1e-6):
+                with torch.no_grad():
+                    param[idx] = shifted
+                values.append(outer_after_virtual_step())
+            with torch.no_grad():
+                param[idx] = old
+            up, down = values
+            assert grad[idx].item() == pytest.approx((up - down) / 2e-6, rel=1e-4, abs=1e-10)
+            checked += 1
+    assert checked >= 12 and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_batch_mean_hypergradient_is_a_different_approximation():
+    p, obs_i, noise_i, obs_o, noise_o = tiny_problem()
+    args = (p["adversary"], p["weighting"], p["victim"], p["intention"], p["critic"], torch.tensor(0.1, dtype=torch.float64),
+            obs_i, noise_i, obs_o, noise_o, 0.3, "linf", 0.5)
+    exact, approx = hypergradient(*args), hypergradient(*args, form="batch-mean")
+    assert all(a.shape == b.shape for a, b in zip(exact, approx))
+    assert not all(torch.allclose(a, b) for a, b in zip(exact, approx))
+
+
+# --- gradient isolation ------------------------------------------------------------------------------------------
+
+
+def snapshot(*modules):
+    return [[q.detach().clone() for q in m.parameters()] for m in modules]
+
+
+def changed(before, module):
+    return any(not torch.equal(a, b) for a, b in zip(before, module.parameters()))
+
+
+def isolation_setup(ablation="none"):
+    torch.manual_seed(0)
+    victim = point_victim()
+    intention = SAC(4, 2, SACConfig(hidden=16, layers=1, batch_size=8))
+    adversary, weighting = Adversary(4, hidden=16), WeightingNetwork(4, hidden=8)
+    cfg = RATConfig(epsilon=0.1, ablation=ablation, horizon=HORIZON)
+    return victim, intention, adversary, weighting, cfg, torch.randn(32, 4)
+
+
+@pytest.mark.parametrize("ablation", ["none", "no-intention"])
+def test_inner_step_moves_only_the_adversary_and_never_the_victim(ablation):
+    victim, intention, adversary, weighting, cfg, obs = isolation_setup(ablation)
+    before = snapshot(adversary, weighting, intention.actor, intention.critic, victim)
+    opt = torch.optim.Adam(adversary.parameters(), lr=1e-2)
+    adversary_update(adversary, opt, weighting, victim, intention, obs, cfg)
+    assert changed(before[0], adversary)
+    for b, m in zip(before[1:], (weighting, intention.actor, intention.critic, victim)):
+        assert not changed(b, m)
+        assert all(q.grad is None for q in m.parameters())
+
+
+def test_outer_step_moves_only_the_weighting_network():
+    victim, intention, adversary, weighting, cfg, obs = isolation_setup()
+    before = snapshot(adversary, weighting, intention.actor, intention.critic)
+    opt = torch.optim.Adam(weighting.parameters(), lr=1e-2)
+    weighting_update(weighting, opt, adversary, victim, intention, obs, torch.randn(32, 4), cfg)
+    assert changed(before[1], weighting)
+    for b, m in zip([before[0], *before[2:]], (adversary, intention.actor, intention.critic)):
+        assert not changed(b, m) and all(q.grad is None for q in m.parameters())
+
+
+# --- the combined behaviour policy ---------------------------------------------------------------------------------
+
+
+def test_combined_policy_switches_at_the_drawn_episode_step():
+    policy = CombinedBehaviourPolicy(horizon=10)
+    rng = np.random.default_rng(0)
+    switches = []
+    for _ in range(5000):
+        policy.start_episode(rng)
+        h = policy.switch
+        switches.append(h)
+        assert [policy.victim_acts(t) for t in range(10)] == [t < h for t in range(10)]
+    counts = np.bincount(switches, minlength=10)
+    assert len(counts) == 10 and stats.chisquare(counts).pvalue > 0.001  # h ~ U{0..H-1}
+
+
+def test_ablation_modes_fix_the_switch():
+    rng = np.random.default_rng(0)
+    victim_only, intention_only = CombinedBehaviourPolicy(8, "victim"), CombinedBehaviourPolicy(8, "intention")
+    victim_only.start_episode(rng)
+    intention_only.start_episode(rng)
+    assert all(victim_only.victim_acts(t) for t in range(8)) and not any(intention_only.victim_acts(t) for t in range(8))
+
+
+def test_bad_attack_settings():
+    with pytest.raises(RatError, match="epsilon must be"):
+        RATConfig(epsilon=-1)
+    with pytest.raises(RatError, match="unknown ablation"):
+        RATConfig(ablation="no-everything")

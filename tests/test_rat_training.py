@@ -1,0 +1,77 @@
+"""RAT end to end on the small point environment: it learns, and a killed run resumes exactly."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+from scipy import stats
+
+from point_env import BESIDE, HORIZON, PointGoal, point_victim
+from rat.agents.sac import SACConfig
+from rat.attacks.rat import RATConfig, evaluate_attack, train_rat
+from rat.attacks.threat import random_delta
+from rat.preferences.pebble import PebbleConfig
+from rat.preferences.reward_model import RewardModelConfig
+
+
+def small_config(steps=2000, **kw):
+    return RATConfig(
+        epsilon=0.1, total_steps=steps, horizon=HORIZON, adversary_hidden=64, adversary_lr=1e-3, adversary_every=20,
+        adversary_updates=5, adversary_batch=128, weighting_every=200, eval_every=500, eval_episodes=20,
+        final_eval_episodes=50, checkpoint_every=400, **kw,
+        pebble=PebbleConfig(sac=SACConfig(hidden=64, layers=2, batch_size=128, lr=1e-3, alpha_lr=1e-3, init_temperature=0.05),
+                            seed_steps=200, unsupervised_steps=200, budget=200, per_round=40, feedback_every=200,
+                            segment_length=10, candidates_factor=4, buffer_capacity=20_000,
+                            reward=RewardModelConfig(hidden=64, layers=2, max_epochs=20, lr=1e-3)))
+
+
+def test_rat_beats_a_random_attack_of_the_same_budget(tmp_path):
+    report = train_rat(small_config(), point_victim(), BESIDE, PointGoal, tmp_path / "run", progress=False)
+    assert report["adversary_updates"] > 300 and report["weighting_updates"] > 5 and report["labels"] > 100
+    rng = np.random.default_rng(0)
+    random = evaluate_attack(point_victim(), lambda o: random_delta(rng, 4, "linf"), PointGoal(7), BESIDE, 0.1, "linf",
+                             50, seed=2 * 10**7)
+    rat_hits = round(report["attack_success_rate"] * 50)
+    rnd_hits = round(random.result.success_rate * 50)
+    p = stats.fisher_exact([[rat_hits, 50 - rat_hits], [rnd_hits, 50 - rnd_hits]], alternative="greater").pvalue
+    assert rat_hits / 50 >= 0.15 and p < 0.01, f"RAT {rat_hits}/50, random {rnd_hits}/50, p={p:.2g}"
+    assert report["max_perturbation"] <= 0.1 + 1e-9
+    assert (tmp_path / "run" / "adversary.safetensors").exists() and (tmp_path / "run" / "training.png").exists()
+
+
+KILLABLE = """
+import sys, torch
+sys.path.insert(0, {tests!r})
+torch.set_num_threads(1)
+from point_env import BESIDE, PointGoal, point_victim
+from test_rat_training import small_config
+from rat.attacks.rat import train_rat
+train_rat(small_config(1200), point_victim(), BESIDE, PointGoal, {out!r}, progress=False)
+"""
+
+
+def test_a_killed_run_resumes_and_reproduces_the_finished_runs_artefacts(tmp_path):
+    whole = train_rat(small_config(1200), point_victim(), BESIDE, PointGoal, tmp_path / "whole", progress=False)
+
+    out = tmp_path / "killed"
+    script = KILLABLE.format(tests=str(Path(__file__).parent), out=str(out))
+    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "PYTHONHASHSEED": "0"})
+    deadline = time.time() + 300
+    while not (out / "checkpoint.json").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (out / "checkpoint.json").exists() and not (out / "report.json").exists(), "the run was not cut short"
+
+    resumed = train_rat(small_config(1200), point_victim(), BESIDE, PointGoal, out, progress=False)
+    a, b = load_file(tmp_path / "whole" / "adversary.safetensors"), load_file(out / "adversary.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    for key in ("attack_success_rate", "labels", "queries_asked", "adversary_updates", "weighting_updates"):
+        assert resumed[key] == whole[key], key
