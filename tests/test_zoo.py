@@ -5,6 +5,7 @@ import pytest
 from rat.envs import PAPER_TASKS, make_task
 from rat.eval import evaluate
 from rat.victims import check_compatible, load_victim, zoo_tasks
+from rat.victims.base import numpy_policy
 from rat.victims.zoo import ZOO_DIR
 
 
@@ -20,7 +21,7 @@ def test_zoo_victim_loads_records_its_provenance_and_succeeds(task):
     assert meta["clean_eval"]["episodes"] >= 50 and meta["clean_eval"]["success_rate"] >= 0.95
     env = make_task(task, seed=123)
     check_compatible(victim, env)
-    result = evaluate(victim.act_numpy, env, episodes=3, seed=777, stop_at_success=True)
+    result = evaluate(numpy_policy(victim), env, episodes=3, seed=777, stop_at_success=True)
     assert result.success_rate == 1.0, result.summary()
 
 

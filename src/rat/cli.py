@@ -106,6 +106,7 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
     from rat.envs import check_task, get_target, make_task
     from rat.eval import evaluate
     from rat.victims import check_compatible, load_victim
+    from rat.victims.base import numpy_policy
 
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
@@ -117,7 +118,7 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
     env_task = check_task(behaviour.env_task(check_task(task)))
     env = make_task(env_task, seed=seed, render_mode="rgb_array" if video else None)
     check_compatible(v, env, f"task '{env_task}'")
-    result = evaluate(v.act_numpy, env, episodes, seed=seed, target=behaviour, video=video,
+    result = evaluate(numpy_policy(v), env, episodes, seed=seed, target=behaviour, video=video,
                       video_episodes=video_episodes, progress=True)
     if as_json:
         click.echo(json.dumps({"victim": victim_spec, "task": env_task, "target": target, **result.to_dict()}))

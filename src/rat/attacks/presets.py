@@ -18,6 +18,7 @@ from rat.errors import RatError
 from rat.preferences.pebble import PebbleConfig
 from rat.preferences.reward_model import RewardModelConfig
 from rat.victims import check_compatible, load_victim
+from rat.victims.base import numpy_policy
 
 PRESETS = ("cpu", "paper")
 
@@ -68,6 +69,6 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     env = make_task(meta["task"], seed=seed, render_mode="rgb_array" if video else None)
     attacked = evaluate_attack(victim, adversary_function(adversary), env, target, cfg["epsilon"], cfg["norm"],
                                episodes, seed, video=video, progress=progress)
-    clean = evaluate(victim.act_numpy, make_task(meta["task"], seed=seed), episodes, seed, target=target)
+    clean = evaluate(numpy_policy(victim), make_task(meta["task"], seed=seed), episodes, seed, target=target)
     return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"], "epsilon": cfg["epsilon"],
             "norm": cfg["norm"], "attack": attacked, "clean": clean}

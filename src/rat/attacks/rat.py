@@ -36,10 +36,11 @@ from rat.envs.targets import TargetBehaviour
 from rat.errors import RatError
 from rat.eval import EvalResult, evaluate
 from rat.agents.sac import SAC
+from rat.plots import plot_training
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.store import LabelStore
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_jsonable
-from rat.victims.base import Victim, check_compatible
+from rat.victims.base import Victim, check_compatible, numpy_policy
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
 
@@ -125,7 +126,7 @@ def evaluate_attack(victim: Victim, adversary: Callable[[np.ndarray], np.ndarray
                     video: str | Path | None = None, progress: bool = False) -> AttackEval:
     """Run the victim on attacked observations; success is the *target*'s test, at any step."""
     attacked = AttackedObservation(env, adversary, epsilon, norm)
-    result = evaluate(victim.act_numpy, attacked, episodes, seed, target=target, video=video, progress=progress)
+    result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress)
     norms = np.asarray(attacked.norms)
     return AttackEval(result, norm, epsilon, float(norms.max()), float(norms.mean()), len(norms))
 
@@ -287,8 +288,6 @@ def train_rat(config: RATConfig, victim: Victim, target: TargetBehaviour, make_e
     meta = {"rat": to_jsonable(cfg), **(describe or {}), "target": target.name, "obs_dim": obs_dim,
             "adversary_hidden": cfg.adversary_hidden}
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict()}, meta)
-    from rat.preferences.intention import plot_training
-
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = {
         **(describe or {}), "target": target.name, "epsilon": cfg.epsilon, "norm": cfg.norm,

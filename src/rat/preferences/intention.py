@@ -28,6 +28,7 @@ from rat.errors import RatError
 from rat.eval import evaluate
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.segments import EpisodeHistory
+from rat.plots import plot_reward_quality, plot_training
 from rat.preferences.store import LabelStore
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything
 
@@ -96,53 +97,6 @@ def reward_quality(ensemble, episodes: list[dict[str, np.ndarray]], segment_leng
     r_hat = np.concatenate([ensemble.r_hat(e["obs"], e["action"]) for e in episodes])
     pearson = float(stats.pearsonr(r_hat, r_true)[0]) if np.std(r_true) > 0 and np.std(r_hat) > 0 else float("nan")
     return RewardQuality(accuracy, int(decided.sum()), pearson, len(r_true))
-
-
-def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path: Path, title: str) -> Path:
-    """Standardised learned vs true reward along one rollout."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    def z(x):
-        return (x - x.mean()) / (x.std() + 1e-8)
-
-    fig, ax = plt.subplots(figsize=(7, 3.2))
-    ax.plot(z(r_hat), label="learned reward r̂ (standardised)", color="tab:blue")
-    ax.plot(z(episode["reward"]), label="true target reward (standardised)", color="tab:orange", alpha=0.8)
-    ax.set_xlabel("episode step")
-    ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def plot_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
-    """Evaluation success over environment steps, from a run's metrics.csv."""
-    import csv
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with open(metrics_csv, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("eval_success_rate")]
-    if not rows:
-        return None
-    fig, ax = plt.subplots(figsize=(6, 3.2))
-    ax.plot([float(r["step"]) for r in rows], [100 * float(r["eval_success_rate"]) for r in rows], marker="o")
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("target success (%)")
-    ax.set_ylim(-3, 103)
-    ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
 
 
 def train_intention(config: IntentionConfig, out: str | Path, progress: bool = True, tensorboard: bool = False) -> dict:

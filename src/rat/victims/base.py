@@ -93,10 +93,15 @@ class ModuleVictim(nn.Module):
     def update_context(self, context, obs, action, reward) -> None:
         return None
 
+
+def numpy_policy(victim: Victim):
+    """``obs -> action`` in numpy for rollouts of a memoryless victim (one observation at a time)."""
+
     @torch.no_grad()
-    def act_numpy(self, obs: np.ndarray) -> np.ndarray:
-        """One action for one observation, numpy in and out (for rollouts)."""
-        return self.act(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+    def act(obs: np.ndarray) -> np.ndarray:
+        return victim.act(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+
+    return act
 
 
 def check_compatible(victim: Victim, env: gym.Env, env_name: str = "the environment") -> None:

@@ -26,7 +26,7 @@ from rat.eval import EvalResult, evaluate
 from rat.errors import RatError
 from rat.runs import Run, git_commit, restore_rng_state, rng_state, seed_everything
 from rat.victims.adapters import save_victim
-from rat.victims.base import ModuleVictim
+from rat.victims.base import ModuleVictim, numpy_policy
 from rat.victims.experts import Demonstrations, collect_demonstrations
 
 METHODS = {
@@ -227,7 +227,7 @@ def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, t
 
     victim = ModuleVictim(actor, env.observation_space, env.action_space, name=f"{config.task}:{config.method}")
     eval_env = make_task(config.task, seed=config.seed + 1)  # episodes never seen in training
-    result = evaluate(victim.act_numpy, eval_env, config.eval_episodes, seed=10**6 + config.seed, progress=progress)
+    result = evaluate(numpy_policy(victim), eval_env, config.eval_episodes, seed=10**6 + config.seed, progress=progress)
     run.logger.log(config.total_steps if config.method != "bc" else config.bc_updates,
                    {"final_success_rate": result.success_rate, "final_return": result.mean_return})
     meta = {

@@ -1,0 +1,105 @@
+"""Where a RAT run's time goes, per 1,000 environment steps, with the `cpu` preset.
+
+    python benchmarks/rat_profile.py > benchmarks/rat_profile.md
+
+Each component is timed as the RAT loop runs it (median of repeats after a warm-up), then scaled
+to its frequency per 1,000 steps: 1,000 environment steps with the victim's or intention
+policy's action, 1,000 intention-SAC updates, 100 adversary updates (10 every 100 steps), one
+weighting update per 1,000 steps, and one reward round (training plus relabelling) every 5,000.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from rat.attacks.losses import Adversary, WeightingNetwork
+from rat.attacks.presets import rat_config
+from rat.attacks.rat import adversary_update, weighting_update
+from rat.attacks.threat import perturb
+from rat.envs import get_target, make_task
+from rat.preferences.pebble import PebbleLearner
+from rat.preferences.store import LabelStore
+from rat.preferences.teacher import ScriptedTeacher
+from rat.victims import load_victim
+
+
+def timed(fn, repeats: int, warmup: int = 2) -> float:
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - t)
+    return statistics.median(samples)
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    import tempfile
+
+    cfg = rat_config("cpu", budget=1000)
+    env, target, victim = make_task("drawer-open-v3"), get_target("reach"), load_victim("zoo:drawer-open-v3")
+    rng = np.random.default_rng(0)
+    tmp = tempfile.mkdtemp()
+    learner = PebbleLearner(39, 4, cfg.pebble, LabelStore(f"{tmp}/labels.sqlite"), "profile", rng)
+    adversary, weighting = Adversary(39, cfg.adversary_hidden), WeightingNetwork(39)
+    adv_opt = torch.optim.Adam(adversary.parameters(), lr=cfg.adversary_lr)
+    w_opt = torch.optim.Adam(weighting.parameters(), lr=cfg.weighting_lr)
+
+    obs, _ = env.reset(seed=0)
+    for _ in range(10_000):  # fill the buffer and history with real transitions
+        action = rng.uniform(-1, 1, 4)
+        nxt, _, term, trunc, info = env.step(action)
+        learner.buffer.add(obs, action, 0.0, nxt, term)
+        learner.history.add(obs, action, target.reward(obs, action, nxt, info), term or trunc)
+        obs = env.reset()[0] if term or trunc else nxt
+
+    def env_steps():
+        o, _ = env.reset(seed=1)
+        for t in range(1000):
+            with torch.no_grad():
+                s = torch.as_tensor(o, dtype=torch.float32).unsqueeze(0)
+                a = victim.act(perturb(s, adversary(s, torch.randn_like(s)), 0.1)).squeeze(0).numpy() if t % 2 else learner.agent.act(o)
+            o, _, term, trunc, info = env.step(a)
+            target.reward(o, a, o, info)
+            if term or trunc:
+                o, _ = env.reset()
+
+    batch = lambda n: learner.buffer.sample(n, rng)["obs"]  # noqa: E731
+    rows = {
+        "environment (1,000 steps, acting included)": timed(env_steps, 3, 1),
+        "intention SAC (1,000 updates, batch 256)": 1000 * timed(lambda: learner.update(), 50, 5),
+        "adversary (100 updates, batch 256)": 100 * timed(
+            lambda: adversary_update(adversary, adv_opt, weighting, victim, learner.agent, batch(256), cfg), 30),
+        "weighting network (1 hypergradient update, batch 256)": timed(
+            lambda: weighting_update(weighting, w_opt, adversary, victim, learner.agent, batch(256), batch(256), cfg), 10),
+    }
+    teacher = ScriptedTeacher()
+    pairs = learner.history.sample_pairs(1000, 50, rng)
+    labels = teacher.label(pairs, rng)
+
+    def reward_round():
+        learner.ensemble.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, labels.y, rng)
+        learner.buffer.relabel(lambda o, a, _: learner.ensemble.r_hat(o, a))
+
+    rows["reward model (1/5 of a round: 1,000 labels, <= 30 epochs, relabel 10k)"] = timed(reward_round, 1, 0) / 5
+    total = sum(rows.values())
+    print("# Where the time goes: RAT, `cpu` preset, per 1,000 environment steps\n")
+    print("Measured by `python benchmarks/rat_profile.py` on this project's 2-core CPU machine, torch on one")
+    print("thread, drawer-open-v3 with the zoo victim (medians after warm-up; the machine is shared and noisy).\n")
+    print("| component | seconds per 1,000 steps | share |")
+    print("| --- | ---: | ---: |")
+    for name, sec in rows.items():
+        print(f"| {name} | {sec:.2f} | {100 * sec / total:.0f}% |")
+    print(f"| **total** | **{total:.2f}** | |")
+    print(f"\nAt this rate 50,000 steps take about {50 * total / 60:.0f} minutes; 1,000,000 about {1000 * total / 3600:.1f} hours.")
+    print(f"Reward-model epochs run in the timed round: {learner.ensemble.epochs_run}.")
+
+
+if __name__ == "__main__":
+    main()

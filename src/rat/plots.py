@@ -1,0 +1,55 @@
+"""Figures people would rather see than read: training curves and learned-vs-true rewards."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path: Path, title: str) -> Path:
+    """Standardised learned vs true reward along one rollout."""
+    plt = _pyplot()
+
+    def z(x):
+        return (x - x.mean()) / (x.std() + 1e-8)
+
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    ax.plot(z(r_hat), label="learned reward r̂ (standardised)", color="tab:blue")
+    ax.plot(z(episode["reward"]), label="true target reward (standardised)", color="tab:orange", alpha=0.8)
+    ax.set_xlabel("episode step")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
+    """Evaluation success over environment steps, from a run's metrics.csv."""
+    plt = _pyplot()
+    with open(metrics_csv, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("eval_success_rate")]
+    if not rows:
+        return None
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.plot([float(r["step"]) for r in rows], [100 * float(r["eval_success_rate"]) for r in rows], marker="o")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("target success (%)")
+    ax.set_ylim(-3, 103)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
