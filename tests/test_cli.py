@@ -158,3 +158,21 @@ def test_attack_bad_inputs(capsys, tmp_path):
     assert_user_error(*run(capsys, "attack", "train", "--budget", "-3", "--out", str(tmp_path / "c"))[::2],
                       "budget must not be negative")
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path))[::2], "no checkpoint at")
+
+
+def test_zoo_regeneration_writes_victims_and_timings_and_refuses_weak_ones(capsys, tmp_path):
+    dest = tmp_path / "zoo"
+    code, out, err = run(capsys, "victim", "zoo", "--task", "drawer-close-v3", "--task", "window-close-v3", "--jobs", "1",
+                         "--demo-episodes", "1", "--bc-updates", "20", "--eval-episodes", "2", "--dest", str(dest),
+                         "--work-dir", str(tmp_path / "work"))
+    for task in ("drawer-close-v3", "window-close-v3"):
+        assert (dest / f"{task}.safetensors").exists() and (dest / f"{task}.json").exists()
+        assert f"{task}" in out and "min" in out
+    timings = __import__("json").loads((dest / "timings.json").read_text())
+    assert set(timings) == {"drawer-close-v3", "window-close-v3"} and all(t["minutes"] > 0 for t in timings.values())
+    # 20 updates of behaviour cloning make a poor victim: the command says so and exits 2
+    weak = [t for t, r in timings.items() if r["clean_success"] < 0.95]
+    if weak:
+        assert_user_error(code, err, "below 95% clean success")
+    else:
+        assert code == 0

@@ -133,7 +133,10 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
 @click.option("--jobs", type=int, default=2, show_default=True, help="parallel processes")
 @click.option("--dest", type=click.Path(path_type=Path), default=None, help="zoo folder [the package's zoo]")
 @click.option("--work-dir", type=click.Path(path_type=Path), default=Path("runs/zoo"), show_default=True)
-def victim_zoo(tasks, jobs, dest, work_dir) -> None:
+@click.option("--demo-episodes", type=int, default=100, show_default=True, help="expert episodes per task")
+@click.option("--bc-updates", type=int, default=20_000, show_default=True, help="behaviour-cloning steps per task")
+@click.option("--eval-episodes", type=int, default=50, show_default=True, help="clean evaluation episodes per task")
+def victim_zoo(tasks, jobs, dest, work_dir, demo_episodes, bc_updates, eval_episodes) -> None:
     """Regenerate the victim zoo (behaviour cloning, default settings) and record the timings."""
     from rat.envs import check_task
     from rat.victims.training import VictimConfig
@@ -148,7 +151,8 @@ def victim_zoo(tasks, jobs, dest, work_dir) -> None:
         click.echo(f"{row['task']:<18} {row['minutes']:5.1f} min  clean success {row['clean_success']:.0%} "
                    f"over {row['episodes']} episodes")
 
-    regenerate_zoo(VictimConfig(method="bc"), list(tasks) or None, work_dir, dest or ZOO_DIR, jobs, on_done=report)
+    config = VictimConfig(method="bc", demo_episodes=demo_episodes, bc_updates=bc_updates, eval_episodes=eval_episodes)
+    regenerate_zoo(config, list(tasks) or None, work_dir, dest or ZOO_DIR, jobs, on_done=report)
 
 
 # --- intention policies and labels -------------------------------------------------------------

@@ -155,9 +155,9 @@ class PebbleLearner:
         return self.agent.update(batch)
 
     def segment_return_scale(self) -> float:
-        """Mean true target return of a segment in the stored episodes (the teacher's threshold scale)."""
+        """Mean true target return of a segment in the recent episodes (the teacher's threshold scale)."""
         L = self.config.segment_length
-        return float(np.mean([e[2].sum() * L / len(e[2]) for e in self.history.episodes]))
+        return float(np.mean([e[2].sum() * L / len(e[2]) for e in self.history.with_current()]))
 
     def query_round(self, n: int) -> dict[str, float]:
         """Ask ``n`` queries, train r̂ on every label so far, relabel the buffer.

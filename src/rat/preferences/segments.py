@@ -69,13 +69,17 @@ class EpisodeHistory:
     def __len__(self) -> int:
         return len(self.episodes)
 
-    def sample_pairs(self, n: int, length: int, rng: np.random.Generator) -> SegmentPairs:
-        """``n`` pairs of segments of ``length`` steps, each from a uniformly drawn stored episode
-        (the episode in progress counts too)."""
+    def with_current(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The stored episodes and the one in progress (if it has begun)."""
         episodes = list(self.episodes)
         if self._obs:
             episodes.append((np.stack(self._obs), np.stack(self._act), np.asarray(self._rew, np.float32)))
-        usable = [e for e in episodes if len(e[0]) >= length]
+        return episodes
+
+    def sample_pairs(self, n: int, length: int, rng: np.random.Generator) -> SegmentPairs:
+        """``n`` pairs of segments of ``length`` steps, each from a uniformly drawn stored episode
+        (the episode in progress counts too)."""
+        usable = [e for e in self.with_current() if len(e[0]) >= length]
         if not usable:
             raise RatError(f"no episode has {length} steps yet to draw segments from; "
                            "start the first query round later or shorten the segments")
