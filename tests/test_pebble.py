@@ -94,3 +94,12 @@ def test_a_resumed_learner_reuses_stored_labels_and_asks_nothing_twice(tmp_path)
     drive(resumed, env2, 700)
     assert resumed.asked == 70 and resumed.store.count("run") == 70  # the second round's labels were reused
     assert [r["round"] for r in resumed.store.rounds("run")] == [0, 1, 2]
+
+
+def test_an_oracle_learner_stores_the_true_reward_and_asks_nothing(tmp_path):
+    learner, env = make(tmp_path, tiny_config(oracle=True))
+    drive(learner, env, 400)
+    n = len(learner.buffer)
+    assert learner.asked == 0 and learner.store.count("run") == 0 and learner.reward_ready
+    np.testing.assert_allclose(learner.buffer.reward[:n], learner.buffer.next_obs[:n, 0] - learner.buffer.obs[:n, 0],
+                               atol=1e-6)  # Drift's target reward: x-progress

@@ -178,13 +178,14 @@ def intention() -> None:
 @click.option("--batch-size", type=int, default=1024, show_default=True, help="SAC batch size")
 @click.option("--reward-epochs", type=int, default=200, show_default=True, help="reward-model epochs per round, at most")
 @click.option("--eval-every", type=int, default=10_000, show_default=True, help="steps between evaluations")
+@click.option("--oracle", is_flag=True, help="learn from the true target reward, no labels (an upper bound)")
 @click.option("--teacher-mistake", type=float, default=0.0, show_default=True, help="scripted teacher's mistake rate")
 @click.option("--teacher-beta", type=float, default=None, help="Boltzmann rationality (default: perfectly rational)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/intention-...]")
 @click.option("--tensorboard", is_flag=True, help="also log to TensorBoard")
 def intention_train(task, target, budget, steps, per_round, every, strategy, seed_steps, pretrain_steps, batch_size,
-                    reward_epochs, eval_every, teacher_mistake, teacher_beta, seed, out, tensorboard) -> None:
+                    reward_epochs, eval_every, oracle, teacher_mistake, teacher_beta, seed, out, tensorboard) -> None:
     """Train an intention policy for TARGET from scripted preference labels; resumes with the same --out."""
     from dataclasses import replace
 
@@ -196,7 +197,7 @@ def intention_train(task, target, budget, steps, per_round, every, strategy, see
     base = PebbleConfig()
     pebble = PebbleConfig(sac=replace(base.sac, batch_size=batch_size), budget=budget, per_round=per_round,
                           feedback_every=every, strategy=strategy, seed_steps=seed_steps,
-                          unsupervised_steps=pretrain_steps, reward=RewardModelConfig(max_epochs=reward_epochs),
+                          unsupervised_steps=pretrain_steps, oracle=oracle, reward=RewardModelConfig(max_epochs=reward_epochs),
                           teacher=TeacherConfig(beta=teacher_beta, mistake=teacher_mistake))
     config = IntentionConfig(task=task, target=target, seed=seed, total_steps=steps, pebble=pebble,
                              eval_every=eval_every)

@@ -61,6 +61,7 @@ class PebbleConfig:
     reset_updates: int = 100  #: SAC updates right after the critic reset
     updates_per_step: int = 1  #: SAC updates per environment step
     buffer_capacity: int = 1_000_000  #: replay buffer size
+    oracle: bool = False  #: learn from the true target reward instead of labels (an upper bound; no queries)
 
     def __post_init__(self):
         for name in ("seed_steps", "unsupervised_steps", "reset_updates", "updates_per_step"):
@@ -113,8 +114,9 @@ class PebbleLearner:
 
     @property
     def reward_ready(self) -> bool:
-        """Whether r̂ has been trained at least once (before that, stored rewards are 0)."""
-        return self.round > 0
+        """Whether the policy's reward carries the target behaviour: r̂ trained at least once
+        (before that, stored rewards are 0), or, for an oracle, pre-training over."""
+        return self.round > 0 or (self.config.oracle and not self.pretraining)
 
     @property
     def pretraining(self) -> bool:
@@ -131,12 +133,15 @@ class PebbleLearner:
     def observe(self, obs, action, next_obs, target_reward: float, terminated: bool, truncated: bool
                 ) -> dict[str, float]:
         """Take one transition (with its true target reward, for the scripted teacher) and learn."""
-        reward = float(self.ensemble.r_hat(obs, action)) if self.reward_ready else 0.0
+        if self.config.oracle:
+            reward = float(target_reward)
+        else:
+            reward = float(self.ensemble.r_hat(obs, action)) if self.reward_ready else 0.0
         self.buffer.add(obs, action, reward, next_obs, terminated)
         self.history.add(obs, action, target_reward, terminated or truncated)
         self.step += 1
         metrics: dict[str, float] = {}
-        n = self.schedule.queries_at(self.step, self.asked)
+        n = 0 if self.config.oracle else self.schedule.queries_at(self.step, self.asked)
         if n > 0:
             metrics.update(self.query_round(n))
         if self.step >= self.config.seed_steps:
