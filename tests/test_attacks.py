@@ -5,13 +5,14 @@ import pytest
 import torch
 from scipy import stats
 
-from point_env import HORIZON, PointGoal, point_victim
+from point_env import HORIZON, PointGoal
 from rat.agents.networks import TanhGaussianActor, TwinCritic
 from rat.agents.sac import SAC, SACConfig
 from rat.attacks.losses import Adversary, WeightingNetwork, gaussian_kl, hypergradient, inner_loss, kl_per_state, outer_loss
 from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, weighting_update
 from rat.attacks.threat import NORMS, AttackedObservation, perturb, perturbation_norm, project, random_delta
 from rat.errors import RatError
+from rat.victims import ModuleVictim
 
 # --- threat model ------------------------------------------------------------------------------------------
 
@@ -168,7 +169,10 @@ def changed(before, module):
 
 def isolation_setup(ablation="none"):
     torch.manual_seed(0)
-    victim = point_victim()
+    env = PointGoal()
+    # a victim with weights, so "the victim never changes" is not vacuous
+    mlp = torch.nn.Sequential(torch.nn.Linear(4, 16), torch.nn.Tanh(), torch.nn.Linear(16, 2), torch.nn.Tanh())
+    victim = ModuleVictim(mlp, env.observation_space, env.action_space)
     intention = SAC(4, 2, SACConfig(hidden=16, layers=1, batch_size=8))
     adversary, weighting = Adversary(4, hidden=16), WeightingNetwork(4, hidden=8)
     cfg = RATConfig(epsilon=0.1, ablation=ablation, horizon=HORIZON)
@@ -181,7 +185,7 @@ def test_inner_step_moves_only_the_adversary_and_never_the_victim(ablation):
     before = snapshot(adversary, weighting, intention.actor, intention.critic, victim)
     opt = torch.optim.Adam(adversary.parameters(), lr=1e-2)
     adversary_update(adversary, opt, weighting, victim, intention, obs, cfg)
-    assert changed(before[0], adversary)
+    assert changed(before[0], adversary) and len(before[4]) == 4  # the victim has weights to protect
     for b, m in zip(before[1:], (weighting, intention.actor, intention.critic, victim)):
         assert not changed(b, m)
         assert all(q.grad is None for q in m.parameters())

@@ -176,3 +176,18 @@ def test_zoo_regeneration_writes_victims_and_timings_and_refuses_weak_ones(capsy
         assert_user_error(code, err, "below 95% clean success")
     else:
         assert code == 0
+
+
+def test_a_victim_that_does_not_fit_leaves_no_run_behind(capsys, tmp_path):
+    sb3 = pytest.importorskip("stable_baselines3")
+    model = sb3.TD3("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=10, policy_kwargs={"net_arch": [8]})
+    model.save(tmp_path / "pendulum.zip")
+    from point_env import BESIDE, PointGoal
+
+    from rat.attacks.rat import RATConfig, train_rat
+    from rat.errors import RatError
+    from rat.victims import load_victim
+
+    with pytest.raises(RatError, match="does not fit"):
+        train_rat(RATConfig(), load_victim(str(tmp_path / "pendulum.zip")), BESIDE, PointGoal, tmp_path / "run")
+    assert not (tmp_path / "run").exists()

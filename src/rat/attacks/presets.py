@@ -17,7 +17,7 @@ from rat.envs import check_task, get_target, make_task
 from rat.errors import RatError
 from rat.preferences.pebble import PebbleConfig
 from rat.preferences.reward_model import RewardModelConfig
-from rat.victims import check_compatible, load_victim
+from rat.victims import load_victim
 from rat.victims.base import numpy_policy
 
 PRESETS = ("cpu", "paper")
@@ -52,7 +52,6 @@ def train_attack(victim_spec: str, target_name: str, config: RATConfig, out: str
     if task is None:
         raise RatError(f"victim '{victim_spec}' does not record its task; train it with `rat victim train`")
     env_task = check_task(target.env_task(task))
-    check_compatible(victim, make_task(env_task), f"task '{env_task}'")
     describe = {"victim": victim_spec, "victim_task": task, "task": env_task}
     return train_rat(config, victim, target, lambda seed: make_task(env_task, seed=seed), out, describe, progress,
                      tensorboard)

@@ -191,10 +191,10 @@ def train_rat(config: RATConfig, victim: Victim, target: TargetBehaviour, make_e
     Returns the report (also in ``out/report.json``); the adversary is ``out/adversary.*``.
     """
     cfg = config
+    env = make_env(cfg.seed)  # checked before the run directory exists, so a mistake leaves nothing behind
+    check_compatible(victim, env, f"task '{describe['task']}'" if describe and "task" in describe else "the environment")
     run = Run(out, {"rat": to_jsonable(cfg), **(describe or {})}, tensorboard)
     rng = seed_everything(cfg.seed)
-    env = make_env(cfg.seed)
-    check_compatible(victim, env)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     store = LabelStore(run.dir / "labels.sqlite")
     learner = PebbleLearner(obs_dim, act_dim, cfg.pebble, store, source=run.dir.name, rng=rng,
