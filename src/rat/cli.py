@@ -269,7 +269,7 @@ def labels_import(store, src, source) -> None:
 
 @cli.group()
 def attack() -> None:
-    """Train and evaluate targeted behaviour attacks (RAT)."""
+    """Train and evaluate targeted behaviour attacks: RAT and its baselines."""
 
 
 @attack.command("train")
@@ -311,6 +311,38 @@ def attack_train(victim_spec, target, epsilon, norm, budget, preset, steps, abla
     click.echo(f"plot of success over training: {out / 'training.png'}; report: {out / 'report.json'}")
 
 
+@attack.command("baseline")
+@click.option("--method", type=click.Choice(["random", "sa-rl", "pa-ad", "mad"]), required=True,
+              help="random, SA-RL (PPO in the state-adversarial MDP), PA-AD (PPO director + gradient actor), MAD")
+@click.option("--victim", "victim_spec", default="zoo:drawer-open-v3", show_default=True,
+              help="zoo:<task>, a Stable-Baselines3 .zip, or a victim checkpoint")
+@click.option("--target", default="reach", show_default=True, help="reach, opposite, or a registered target")
+@click.option("--epsilon", type=float, default=0.1, show_default=True, help="budget, raw observation units")
+@click.option("--norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]), default="linf", show_default=True)
+@click.option("--labels", "labels_path", type=click.Path(path_type=Path), default=None,
+              help="SA-RL/PA-AD learn r̂ from exactly these labels (e.g. a RAT run's labels.sqlite); "
+                   "without it they use the true target reward (the oracle variants)")
+@click.option("--preset", type=click.Choice(["cpu", "paper"]), default="cpu", show_default=True,
+              help="PPO budget: cpu 5e4 steps; paper 1e6 steps at table 6's settings")
+@click.option("--steps", type=int, default=None, help="environment steps [the preset's]")
+@click.option("--actor-steps", type=int, default=1, show_default=True, help="PA-AD actor: 1 = FGSM, more = PGD")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/<method>-...]")
+def attack_baseline(method, victim_spec, target, epsilon, norm, labels_path, preset, steps, actor_steps, seed, out):
+    """Train (SA-RL, PA-AD) or set up (random, MAD) a baseline attack and evaluate it over 30 episodes."""
+    from rat.attacks.baselines import ppo_preset
+    from rat.attacks.presets import train_baseline_attack
+
+    variant = "" if method not in ("sa-rl", "pa-ad") else ("-oracle" if labels_path is None else "-labels")
+    out = out or Path("runs") / f"{method}{variant}-{victim_spec.replace(':', '-').replace('/', '_')}-{target}-{seed}"
+    report = train_baseline_attack(method, victim_spec, target, out, epsilon, norm, seed,
+                                   ppo_preset(preset, steps, actor_steps=actor_steps), labels_path)
+    lo, hi = report["attack_success_ci"]
+    click.echo(f"{method} ({report['variant']}) attack success: {100 * report['attack_success_rate']:.1f}% "
+               f"(95% CI {100 * lo:.1f}-{100 * hi:.1f}%, {report['episodes']} episodes); max perturbation "
+               f"{report['max_perturbation']:.4f} <= epsilon {epsilon:g} ({norm}); report: {out / 'report.json'}")
+
+
 @attack.command("eval")
 @click.argument("run", type=click.Path(path_type=Path))
 @click.option("--episodes", type=int, default=30, show_default=True, help="the paper uses 30")
@@ -318,7 +350,7 @@ def attack_train(victim_spec, target, epsilon, norm, budget, preset, steps, abla
 @click.option("--video", type=click.Path(path_type=Path), default=None, help="record the first two attacked episodes")
 @click.option("--json", "as_json", is_flag=True)
 def attack_eval(run, episodes, seed, video, as_json) -> None:
-    """Evaluate the adversary of RUN against its victim, beside the victim's clean behaviour."""
+    """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
     from rat.attacks.presets import evaluate_saved_attack
 
     if episodes <= 0:
@@ -331,9 +363,45 @@ def attack_eval(run, episodes, seed, video, as_json) -> None:
             "clean_target_success_rate": clean.success_rate, "max_perturbation": attacked.max_perturbation,
             "mean_perturbation": attacked.mean_perturbation, "within_budget": attacked.within_budget}))
         return
-    click.echo(f"{r['victim']} on {r['task']}, target '{r['target']}'")
+    click.echo(f"{r['method']} against {r['victim']} on {r['task']}, target '{r['target']}'")
     click.echo(f"  attacked: {attacked.summary()}")
     click.echo(f"  clean:    {clean.summary()}")
+
+
+@cli.group()
+def bench() -> None:
+    """Grids of experiments: the paper's tables."""
+
+
+def _csv(kind):
+    return lambda ctx, param, value: [kind(v) for v in value.split(",") if v.strip()] if value else []
+
+
+@bench.command("table1")
+@click.option("--tasks", default="drawer-open-v3,faucet-close-v3", show_default=True, callback=_csv(str),
+              help="victim tasks, comma-separated (zoo victims)")
+@click.option("--scenarios", default="manipulation,opposite", show_default=True, callback=_csv(str))
+@click.option("--methods", default="pa-ad-oracle,pa-ad,sa-rl-oracle,sa-rl,random,rat", show_default=True,
+              callback=_csv(str), help="the paper's columns")
+@click.option("--seeds", default="0,1,2", show_default=True, callback=_csv(int))
+@click.option("--preset", type=click.Choice(["cpu", "paper", "smoke"]), default="cpu", show_default=True,
+              help="budgets: cpu 5e4 steps per learner (this machine), paper 1e6 (a GPU cluster), smoke (minutes)")
+@click.option("--jobs", type=int, default=2, show_default=True, help="parallel local processes")
+@click.option("--ray-address", default=None, help="run the cells as Ray tasks on this cluster ('auto', 'ray://host:10001')")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table1"), show_default=True)
+def bench_table1(tasks, scenarios, methods, seeds, preset, jobs, ray_address, out) -> None:
+    """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
+    from rat.table1 import GRID_PRESETS, grid_cells, run_grid
+
+    cells = grid_cells(tasks, scenarios, methods, seeds)
+    click.echo(f"{len(cells)} cells, preset '{preset}', {'Ray at ' + ray_address if ray_address else f'{jobs} processes'}")
+    result = run_grid(cells, GRID_PRESETS[preset], out, jobs, ray_address, echo=click.echo)
+    click.echo(f"ran {len(result['ran'])}, skipped {len(result['skipped'])} finished, failed {len(result['failed'])}; "
+               f"{out / 'table1.md'}, {out / 'results.csv'}")
+    for row in result["failed"]:
+        click.echo(f"  failed: {row['task']}/{row['scenario']}/{row['method']}/seed{row['seed']}: {row['error']}", err=True)
+    if result["failed"]:
+        raise RatError(f"{len(result['failed'])} cells failed (tracebacks in their error.txt); fix and re-run to resume")
 
 
 # --- entry point -----------------------------------------------------------------------------------

@@ -1,0 +1,85 @@
+"""The table-1 grid runner: resumes without re-running finished cells, runs on a local Ray instance."""
+
+import csv
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from rat.errors import RatError
+from rat.table1 import GRID_PRESETS, Cell, grid_cells, markdown_table, run_grid
+
+SMOKE = GRID_PRESETS["smoke"]
+
+
+def random_cells(seeds):
+    return grid_cells(["drawer-open-v3"], ["manipulation"], ["random"], seeds)
+
+
+def test_a_grid_resumes_without_rerunning_finished_cells(tmp_path):
+    first = run_grid(random_cells([0, 1]), SMOKE, tmp_path, jobs=2, echo=lambda _: None)
+    assert len(first["ran"]) == 2 and not first["failed"]
+    stamps = {c.key: (c.directory(tmp_path) / "result.json").stat().st_mtime_ns for c in random_cells([0, 1])}
+    second = run_grid(random_cells([0, 1, 2]), SMOKE, tmp_path, jobs=1, echo=lambda _: None)
+    assert sorted(second["skipped"]) == sorted(stamps) and [r["seed"] for r in second["ran"]] == [2]
+    assert {c.key: (c.directory(tmp_path) / "result.json").stat().st_mtime_ns for c in random_cells([0, 1])} == stamps
+    with open(tmp_path / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["seed"]) for r in rows] == [0, 1, 2] and all(r["preset"] == "smoke" for r in rows)
+    assert json.loads((tmp_path / "grid.json").read_text())["preset"]["name"] == "smoke"
+    table = (tmp_path / "table1.md").read_text()
+    assert "| manipulation | drawer-open-v3 |" in table and "/ 97.5" in table  # the paper's RAT figure beside ours
+    with pytest.raises(RatError, match="other budgets"):
+        run_grid(random_cells([0]), GRID_PRESETS["cpu"], tmp_path, echo=lambda _: None)
+
+
+def test_a_preference_baseline_waits_for_its_rat_cells_labels(tmp_path):
+    result = run_grid(grid_cells(["drawer-open-v3"], ["manipulation"], ["sa-rl"], [0]), SMOKE, tmp_path, jobs=1,
+                      echo=lambda _: None)
+    assert len(result["failed"]) == 1 and "needs the labels of drawer-open-v3/manipulation/rat/seed0" in result["failed"][0]["error"]
+    assert (Cell("drawer-open-v3", "manipulation", "sa-rl", 0).directory(tmp_path) / "error.txt").exists()
+
+
+def test_bad_grids_are_refused_in_one_line():
+    with pytest.raises(RatError, match="unknown method 'fgsm'"):
+        grid_cells(["drawer-open-v3"], ["manipulation"], ["fgsm"], [0])
+    with pytest.raises(RatError, match="unknown scenario"):
+        grid_cells(["drawer-open-v3"], ["sideways"], ["rat"], [0])
+    with pytest.raises(RatError, match="unknown task"):
+        grid_cells(["drawer-opn-v3"], ["manipulation"], ["rat"], [0])
+
+
+def test_the_markdown_table_puts_the_papers_opposite_row_beside_ours():
+    rows = [{"task": "faucet-close-v3", "scenario": "opposite", "method": "rat", "seed": s,
+             "attack_success_rate": v} for s, v in enumerate((0.5, 1.0))]
+    table = markdown_table(rows, SMOKE)
+    assert "| opposite | faucet-close-v3 (faucet-open-v3) |" in table and "**75.0 ± 25.0** (2) / 81.5" in table
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_two_cell_grid_runs_on_a_local_ray_instance(tmp_path):
+    ray = pytest.importorskip("ray")
+    ray_bin = Path(sys.executable).parent / "ray"
+    port, temp = _free_port(), tempfile.mkdtemp(prefix="ray-")  # short: Ray's socket paths must fit 107 bytes
+    start = [str(ray_bin), "start", "--head", f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+             "--disable-usage-stats", f"--temp-dir={temp}"]
+    subprocess.run(start, check=True, capture_output=True, timeout=180)
+    try:
+        result = run_grid(random_cells([0, 1]), SMOKE, tmp_path / "grid", ray_address=f"127.0.0.1:{port}",
+                          echo=lambda _: None)
+        assert len(result["ran"]) == 2 and not result["failed"]
+        assert all((c.directory(tmp_path / "grid") / "result.json").exists() for c in random_cells([0, 1]))
+    finally:
+        ray.shutdown()
+        subprocess.run([str(ray_bin), "stop", "--force"], capture_output=True, timeout=120)
+        shutil.rmtree(temp, ignore_errors=True)
