@@ -17,8 +17,8 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/rat attack train --victim zoo:drawer-open-v3 --target reach \
-		--epsilon 0.1 --budget 3000 --preset cpu --seed 0 --out runs/demo
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/rat attack train --victim zoo:drawer-open-v3 --target opposite \
+		--epsilon 0.1 --budget 1000 --preset cpu --seed 0 --out runs/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

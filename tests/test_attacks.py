@@ -230,3 +230,42 @@ def test_bad_attack_settings():
         RATConfig(epsilon=-1)
     with pytest.raises(RatError, match="unknown ablation"):
         RATConfig(ablation="no-everything")
+
+
+class _GoalXReward:
+    """A stand-in for r̂ on the point environment: the further right of the goal, the better."""
+
+    def r_hat(self, obs, action):
+        return float(obs[0] - obs[2])
+
+
+def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_path):
+    from point_env import point_victim
+    from rat.attacks.rat import learned_return, select_by_learned_reward
+    from rat.checkpoint import save_checkpoint
+
+    cfg = RATConfig(epsilon=0.1, eval_episodes=3)
+    victim, reward = point_victim(), _GoalXReward()
+    torch.manual_seed(0)
+    snapshots = [Adversary(4, 16) for _ in range(3)]
+    for i, snap in enumerate(snapshots):
+        with torch.no_grad():  # constant perturbations: shift the observed goal left, not at all, right
+            last = snap.policy.trunk[-1]
+            last.weight.zero_()
+            last.bias.zero_()
+            last.bias[2] = 3.0 * (i - 1)  # the mean of Δ for the observed goal's x
+        save_checkpoint(tmp_path / f"adversary-{1000 * (i + 1)}", "adversary-snapshot",
+                        {"adversary": snap.state_dict()}, {"step": 1000 * (i + 1)})
+    current = Adversary(4, 16)  # the adversary at the end of training: another candidate ("last")
+    scores = [learned_return(victim, a, PointGoal(3), reward, cfg, 3, seed=3 * 10**7) for a in snapshots + [current]]
+    expected = [a.state_dict() for a in snapshots + [current]][int(np.argmax(scores))]
+    expected = {k: v.clone() for k, v in expected.items()}
+    result = select_by_learned_reward(tmp_path, current, victim, reward, PointGoal(3), cfg)
+    best = int(np.argmax(scores))
+    assert result["selected_step"] == (1000 * (best + 1) if best < 3 else cfg.total_steps)
+    assert all(torch.equal(a, b) for a, b in zip(current.state_dict().values(), expected.values()))
+    assert max(result["learned_returns"].values()) == pytest.approx(max(scores), abs=1e-3)
+    assert len(set(round(x, 6) for x in scores)) == 4 and best == 2  # they differ; shifting the goal right wins
+    with pytest.raises(RatError, match="oracle"):
+        from rat.preferences.pebble import PebbleConfig
+        RATConfig(select="reward", pebble=PebbleConfig(oracle=True))

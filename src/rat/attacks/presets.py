@@ -5,7 +5,8 @@
 - ``cpu``: what this project runs on a 2-core CPU machine: 50,000 environment steps, SAC and
   adversary batches of 256, the label budget spent in rounds every 5,000 steps from step 10,000 to
   90% of the run (8 rounds at 50,000 steps),
-  at most 30 reward-model epochs per round.
+  at most 30 reward-model epochs per round, and the adversary kept at the end is the snapshot (one
+  per evaluation) that the final r̂ scores best.
 """
 
 from __future__ import annotations
@@ -44,7 +45,10 @@ def rat_config(preset: str = "cpu", budget: int = 3000, steps: int | None = None
     per_round = max(1, -(-budget // rounds))  # ceil: the budget is spent by 90% of the run
     pebble = replace(pebble, sac=replace(pebble.sac, batch_size=256), budget=budget, per_round=per_round,
                      reward=RewardModelConfig(max_epochs=30))
-    settings = dict(total_steps=total, adversary_batch=256, weighting_every=weighting_every, pebble=pebble)
+    # Departure: keep the snapshot whose attack the final r̂ scores best (see RATConfig.select); short
+    # CPU runs of PEBBLE are not monotone, and the attacker can judge its own attack only through r̂.
+    settings = dict(total_steps=total, adversary_batch=256, weighting_every=weighting_every, pebble=pebble,
+                    select="reward")
     return RATConfig(**(settings | overrides))
 
 

@@ -69,12 +69,17 @@ class RATConfig:
     eval_every: int = 10_000  #: steps between attack evaluations
     eval_episodes: int = 10  #: episodes per evaluation during training
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
+    select: str = "last"  #: "last" adversary (the paper's), or the snapshot whose attack scores best under r̂ ("reward")
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
 
     def __post_init__(self):
         check_budget(self.epsilon, self.norm)
         if self.ablation not in ABLATIONS:
             raise RatError(f"unknown ablation '{self.ablation}'; use one of: {', '.join(ABLATIONS)}")
+        if self.select not in ("last", "reward"):
+            raise RatError(f"select must be last or reward, got '{self.select}'")
+        if self.select == "reward" and self.pebble.oracle:
+            raise RatError("select=reward scores snapshots with r̂, which an oracle run does not learn; use select=last")
         if self.kl_form not in ("exact", "released") or self.hypergradient not in ("exact", "batch-mean"):
             raise RatError("kl-form must be exact or released, hypergradient exact or batch-mean")
         for name in ("total_steps", "adversary_every", "adversary_updates", "adversary_batch", "weighting_every",
@@ -267,6 +272,8 @@ def train_rat(config: RATConfig, victim: Victim, target: TargetBehaviour, make_e
         bar.update(1)
         if learner.step % cfg.eval_every == 0:
             res = evaluate_now(cfg.eval_episodes, seed=10**7 + learner.step)
+            save_checkpoint(run.dir / "snapshots" / f"adversary-{learner.step}", "adversary-snapshot",
+                            {"adversary": adversary.state_dict()}, {"step": learner.step})
             run.logger.log(learner.step, {"eval_success_rate": res.result.success_rate, **counters})
             bar.set_postfix(attack_success=f"{res.result.success_rate:.0%}", labels=learner.asked)
         if terminated or truncated:
@@ -282,12 +289,20 @@ def train_rat(config: RATConfig, victim: Victim, target: TargetBehaviour, make_e
     train_seconds = time.perf_counter() - started
 
     # --- results -------------------------------------------------------------------------------------
+    meta = {"rat": to_jsonable(cfg), **(describe or {}), "target": target.name, "obs_dim": obs_dim,
+            "adversary_hidden": cfg.adversary_hidden}
+    selection: dict = {}
+    if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
+        save_checkpoint(run.dir / "adversary-last", "adversary", {"adversary": adversary.state_dict()}, meta)
+        last = evaluate_now(cfg.final_eval_episodes, seed=2 * 10**7)
+        selection = select_by_learned_reward(run.dir / "snapshots", adversary, victim, learner.ensemble,
+                                             make_env(cfg.seed + 11), cfg)
+        selection["last_attack_success_rate"] = last.result.success_rate
     final = evaluate_now(cfg.final_eval_episodes, seed=2 * 10**7)
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
-    meta = {"rat": to_jsonable(cfg), **(describe or {}), "target": target.name, "obs_dim": obs_dim,
-            "adversary_hidden": cfg.adversary_hidden}
-    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict()}, meta)
+    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict()},
+                    meta | {"selected_step": selection.get("selected_step", learner.step)})
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = {
         **(describe or {}), "target": target.name, "epsilon": cfg.epsilon, "norm": cfg.norm,
@@ -296,11 +311,51 @@ def train_rat(config: RATConfig, victim: Victim, target: TargetBehaviour, make_e
         "attack_success_ci": list(final.result.success_ci), "episodes": final.result.episodes,
         "max_perturbation": final.max_perturbation, "mean_perturbation": final.mean_perturbation,
         "adversary_updates": counters["adversary_updates"], "weighting_updates": counters["weighting_updates"],
-        "train_minutes_this_session": round(train_seconds / 60, 2),
+        "train_minutes_this_session": round(train_seconds / 60, 2), **selection,
     }
     (run.dir / "report.json").write_text(json.dumps(report, indent=1))
     store.close()
     return report
+
+
+@torch.no_grad()
+def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, cfg: RATConfig, episodes: int,
+                   seed: int) -> float:
+    """Mean return under r̂ of the attacked victim's episodes: how well the attack does, by the attacker's model."""
+    delta = adversary_function(adversary)
+    returns = []
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=seed + episode)
+        total, done = 0.0, False
+        while not done:
+            s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
+            d = torch.as_tensor(delta(obs), dtype=torch.float32).unsqueeze(0)
+            action = victim.act(perturb(s, d, cfg.epsilon, cfg.norm)).squeeze(0).numpy()
+            total += float(ensemble.r_hat(obs.astype(np.float32), action))
+            obs, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+        returns.append(total)
+    return float(np.mean(returns))
+
+
+def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Victim, ensemble, env: gym.Env,
+                             cfg: RATConfig) -> dict:
+    """Load into ``adversary`` the snapshot (or the last one) whose attack the final r̂ scores highest.
+
+    Every candidate is scored on the same episodes; ties go to the later one. Uses no true reward.
+    """
+    candidates = {"last": {k: v.clone() for k, v in adversary.state_dict().items()}}
+    for path in sorted(snapshots.glob("adversary-*.json"), key=lambda p: int(p.stem.split("-")[1])):
+        candidates[path.stem.split("-")[1]] = load_checkpoint(path, "adversary-snapshot")[0]["adversary"]
+    scores = {}
+    for name, state in candidates.items():
+        adversary.load_state_dict(state)
+        scores[name] = learned_return(victim, adversary, env, ensemble, cfg, cfg.eval_episodes, seed=3 * 10**7)
+    order = [n for n in candidates if n != "last"] + ["last"]  # later wins ties
+    best = max(reversed(order), key=lambda n: scores[n])
+    adversary.load_state_dict(candidates[best])
+    return {"selected_step": cfg.total_steps if best == "last" else int(best),
+            "learned_returns": {n: round(v, 3) for n, v in scores.items()}}
 
 
 def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
