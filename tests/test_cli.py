@@ -191,3 +191,24 @@ def test_a_victim_that_does_not_fit_leaves_no_run_behind(capsys, tmp_path):
     with pytest.raises(RatError, match="does not fit"):
         train_rat(RATConfig(), load_victim(str(tmp_path / "pendulum.zip")), BESIDE, PointGoal, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_a_baseline_from_the_cli_then_attack_eval(capsys, tmp_path):
+    code, out, err = run(capsys, "attack", "baseline", "--method", "random", "--target", "opposite",
+                         "--out", str(tmp_path / "random"))
+    assert code == 0 and "random (none) attack success" in out, err
+    code, out, err = run(capsys, "attack", "eval", str(tmp_path / "random"), "--episodes", "2", "--json")
+    result = __import__("json").loads(out)
+    assert code == 0 and result["method"] == "random" and result["task"] == "drawer-close-v3" and result["within_budget"]
+
+
+def test_baseline_and_grid_bad_inputs(capsys, tmp_path):
+    assert_user_error(*run(capsys, "attack", "baseline", "--method", "sa-rl", "--labels", str(tmp_path / "none.sqlite"),
+                           "--out", str(tmp_path / "a"))[::2], "no label store at")
+    assert_user_error(*run(capsys, "attack", "baseline", "--method", "random", "--epsilon", "-1",
+                           "--out", str(tmp_path / "b"))[::2], "epsilon must be a finite number >= 0")
+    assert_user_error(*run(capsys, "bench", "table1", "--methods", "rat,fgsm", "--out", str(tmp_path / "c"))[::2],
+                      "unknown method 'fgsm'")
+    assert_user_error(*run(capsys, "bench", "table1", "--tasks", "drawer-opn-v3", "--out", str(tmp_path / "d"))[::2],
+                      "did you mean 'drawer-open-v3'")
+    assert not any((tmp_path / x).exists() for x in "abcd")
