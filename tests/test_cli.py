@@ -149,6 +149,11 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     assert result["within_budget"] and result["task"] == "drawer-open-v3" and result["target"] == "reach"
     assert result["clean_target_success_rate"] == 0.0  # the clean victim opens the drawer; it never reaches the goal
 
+    from rat.attacks.presets import film_attack
+
+    filmed = film_attack(tmp_path / "run", tmp_path / "attack.mp4", episodes=3, show=2)
+    assert len(filmed) == 2 and (tmp_path / "attack.mp4").stat().st_size > 10_000
+
 
 def test_attack_bad_inputs(capsys, tmp_path):
     assert_user_error(*run(capsys, "attack", "train", "--victim", "zoo:nope-v3", "--out", str(tmp_path / "a"))[::2],

@@ -289,12 +289,13 @@ def attack() -> None:
 @click.option("--hypergradient", type=click.Choice(["exact", "batch-mean"]), default="exact", show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/attack-...]")
-@click.option("--video/--no-video", default=True, show_default=True, help="record two attacked episodes")
+@click.option("--video/--no-video", default=True, show_default=True,
+              help="film two of ten attacked episodes, those reaching the target first")
 @click.option("--tensorboard", is_flag=True)
 def attack_train(victim_spec, target, epsilon, norm, budget, preset, steps, ablation, kl_form, hypergradient, seed, out,
                  video, tensorboard) -> None:
     """Train a RAT adversary; re-running with the same --out resumes an interrupted run."""
-    from rat.attacks.presets import evaluate_saved_attack, rat_config, train_attack
+    from rat.attacks.presets import film_attack, rat_config, train_attack
 
     config = rat_config(preset, budget, steps, target, epsilon=epsilon, norm=norm, seed=seed, ablation=ablation,
                         kl_form=kl_form, hypergradient=hypergradient)
@@ -305,9 +306,9 @@ def attack_train(victim_spec, target, epsilon, norm, budget, preset, steps, abla
                f"{report['episodes']} episodes), {report['labels']} labels, {report['steps']} steps; "
                f"max perturbation {report['max_perturbation']:.4f} <= epsilon {epsilon:g} ({norm})")
     if video:
-        result = evaluate_saved_attack(out, episodes=2, seed=seed, video=out / "attack.mp4", progress=False)
-        click.echo(f"video of attacked episodes: {out / 'attack.mp4'} "
-                   f"({sum(result['attack'].result.successes)}/2 reach the target)")
+        filmed = film_attack(out, out / "attack.mp4", seed=seed)
+        click.echo(f"video of two of ten attacked episodes, those reaching the target first: {out / 'attack.mp4'} "
+                   f"({sum(filmed)}/{len(filmed)} filmed reach the target)")
     click.echo(f"plot of success over training: {out / 'training.png'}; report: {out / 'report.json'}")
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Sequence
 from typing import Callable
 
 import numpy as np
@@ -63,7 +64,7 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Pa
 
 
 def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehaviour | None = None,
-             video: str | Path | None = None, video_episodes: int = 2, video_every: int = 2,
+             video: str | Path | None = None, video_episodes: int | Sequence[int] = 2, video_every: int = 2,
              progress: bool = False, stop_at_success: bool = False) -> EvalResult:
     """Run ``policy`` for ``episodes`` episodes of ``env``.
 
@@ -72,11 +73,12 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
         env: a gymnasium environment whose ``info`` carries what ``target.success`` reads.
         seed: episode ``i`` is reset with ``seed + i``, so two evaluations see the same episodes.
         target: the success test (and nothing else) is taken from it; default: ``info["success"]``.
-        video: if given, the first ``video_episodes`` episodes are recorded there (needs
+        video: if given, the first ``video_episodes`` episodes (or those with these indices) are recorded there (needs
             ``render_mode="rgb_array"``), one frame every ``video_every`` steps.
         stop_at_success: end an episode at its first success (faster; returns are then partial).
     """
     success_fn = target.success if target is not None else (lambda info: bool(info["success"]))
+    filmed = set(range(video_episodes)) if isinstance(video_episodes, int) else set(video_episodes)
     returns, successes, first, last = [], [], [], []
     frames: list[np.ndarray] = []
     for ep in tqdm(range(episodes), desc="evaluating", disable=not progress, leave=False):
@@ -84,7 +86,7 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
         total, first_step, t, done = 0.0, -1, 0, False
         ok_now = False
         while not done:
-            if video is not None and ep < video_episodes and t % video_every == 0:
+            if video is not None and ep in filmed and t % video_every == 0:
                 frames.append(env.render())
             obs, reward, terminated, truncated, info = env.step(policy(obs))
             total += reward

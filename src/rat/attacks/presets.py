@@ -80,7 +80,7 @@ def train_baseline_attack(method: str, victim_spec: str, target_name: str, out: 
 
 
 def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
-                          progress: bool = True) -> dict:
+                          progress: bool = True, video_episodes=2) -> dict:
     """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim."""
     from rat.eval import evaluate
 
@@ -91,7 +91,19 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     cfg = meta.get("rat", meta)  # RAT keeps its budget in its config, the baselines at the top level
     env = make_task(meta["task"], seed=seed, render_mode="rgb_array" if video else None)
     attacked = evaluate_attack(victim, attack, env, target, cfg["epsilon"], cfg["norm"], episodes, seed, video=video,
-                               progress=progress)
+                               progress=progress, video_episodes=video_episodes)
     clean = evaluate(numpy_policy(victim), make_task(meta["task"], seed=seed), episodes, seed, target=target)
     return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"], "method": meta["method"],
             "epsilon": cfg["epsilon"], "norm": cfg["norm"], "attack": attacked, "clean": clean}
+
+
+def film_attack(run: str | Path, path: str | Path, seed: int = 0, episodes: int = 10, show: int = 2) -> list[bool]:
+    """Film ``show`` of ``episodes`` attacked episodes into one video, those that reach the target first.
+
+    Returns whether each filmed episode reached the target. The episodes are the same ones (by seed)
+    in both passes, so what is filmed is what was counted.
+    """
+    counted = evaluate_saved_attack(run, episodes, seed, progress=False)["attack"].result.successes
+    picks = ([i for i, ok in enumerate(counted) if ok] + [i for i, ok in enumerate(counted) if not ok])[:show]
+    filmed = evaluate_saved_attack(run, max(picks) + 1, seed, video=path, progress=False, video_episodes=picks)
+    return [filmed["attack"].result.successes[i] for i in picks]

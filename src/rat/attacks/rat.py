@@ -128,10 +128,11 @@ class AttackEval:
 
 def evaluate_attack(victim: Victim, adversary: Callable[[np.ndarray], np.ndarray], env: gym.Env,
                     target: TargetBehaviour, epsilon: float, norm: str, episodes: int, seed: int,
-                    video: str | Path | None = None, progress: bool = False) -> AttackEval:
+                    video: str | Path | None = None, progress: bool = False, video_episodes=2) -> AttackEval:
     """Run the victim on attacked observations; success is the *target*'s test, at any step."""
     attacked = AttackedObservation(env, adversary, epsilon, norm)
-    result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress)
+    result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress,
+                      video_episodes=video_episodes)
     norms = np.asarray(attacked.norms)
     return AttackEval(result, norm, epsilon, float(norms.max()), float(norms.mean()), len(norms))
 
