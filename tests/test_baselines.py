@@ -36,6 +36,7 @@ def zoo_victim():
     return load_victim("zoo:drawer-open-v3")
 
 
+@pytest.mark.filterwarnings("ignore:.*Box observation space (minimum|maximum) value is")  # Meta-World's ±inf bounds
 def test_the_sa_rl_environment_passes_gymnasiums_checker_and_stays_in_the_ball(zoo_victim):
     target = get_target("reach")
     for norm in ("linf", "l2", "l1"):

@@ -241,7 +241,8 @@ def mad_attack(victim: Victim, epsilon: float, norm: str, seed: int, steps: int 
 
 
 def sarl_attack(policy) -> Callable[[np.ndarray], np.ndarray]:
-    return lambda obs: ppo_direction(policy)(obs).astype(np.float64)
+    act = ppo_direction(policy)
+    return lambda obs: act(obs).astype(np.float64)
 
 
 def paad_attack(policy, victim: Victim, epsilon: float, norm: str, lam: float, steps: int, seed: int):
