@@ -134,6 +134,28 @@ def test_a_baseline_given_a_label_set_reads_exactly_those_labels(tmp_path):
     assert json.loads((tmp_path / "run" / "labels_used.json").read_text()) == ids
 
 
+def test_the_learned_reward_is_kept_beside_its_label_store_and_relearnt_when_the_labels_change(tmp_path, monkeypatch):
+    from rat.preferences.reward_model import RewardEnsemble
+
+    store = tmp_path / "labels.sqlite"
+    labelled_store(store, 30)
+    first, metrics = learn_reward(store, 4, 2, seed=0, cache=True)
+    rounds = []
+    train_round = RewardEnsemble.train_round
+    monkeypatch.setattr(RewardEnsemble, "train_round", lambda self, *a: rounds.append(1) or train_round(self, *a))
+    again, kept = learn_reward(store, 4, 2, seed=0, cache=True)
+    assert rounds == [] and kept == metrics  # reused, not retrained
+    x, a = np.random.default_rng(0).normal(size=(8, 4)), np.zeros((8, 2))
+    np.testing.assert_array_equal(first.r_hat(x, a), again.r_hat(x, a))
+    learn_reward(store, 4, 2, seed=1, cache=True)  # another seed is another model
+    labelled_store(store, 10, source="later")
+    _, grown = learn_reward(store, 4, 2, seed=0, cache=True)
+    assert rounds == [1, 1] and grown["labels"] == 40
+    (tmp_path / "labels-reward-seed0.safetensors").write_bytes(b"garbage")
+    learn_reward(store, 4, 2, seed=0, cache=True)  # a damaged copy is learnt again, not trusted
+    assert rounds == [1, 1, 1]
+
+
 def test_baselines_refuse_bad_input_in_one_line(tmp_path):
     with pytest.raises(RatError, match="no label store"):
         train_baseline("pa-ad", point_victim(), BESIDE, PointGoal, tmp_path / "a", labels=tmp_path / "none.sqlite")

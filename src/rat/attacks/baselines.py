@@ -53,8 +53,13 @@ RewardFn = Callable[[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]], float]
 
 
 def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardModelConfig = RewardModelConfig(),
-                 seed: int = 0, source: str | None = None) -> tuple[RewardEnsemble, dict]:
-    """A reward ensemble trained on every label of a store (or of one ``source``), once, offline."""
+                 seed: int = 0, source: str | None = None, cache: bool = False) -> tuple[RewardEnsemble, dict]:
+    """A reward ensemble trained on every label of a store (or of one ``source``), once, offline.
+
+    With ``cache``, the ensemble is kept beside the store (``<store>-reward-seed<seed>.safetensors``) and
+    reused while the labels, seed and configuration are the same: SA-RL and PA-AD compared with one RAT
+    run, and a resumed baseline, then learn it once. Training is deterministic, so this changes no number.
+    """
     path = Path(labels)
     if not path.exists():
         raise RatError(f"no label store at '{path}'; give the labels.sqlite of a RAT run (or `rat labels export`)")
@@ -67,10 +72,23 @@ def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardM
                        f"{data.pairs.act0.shape[-1]}-d, not {obs_dim}-d and {act_dim}-d; use the labels of this task")
     torch.manual_seed(seed)
     ensemble = RewardEnsemble(obs_dim, act_dim, config)
+    key = {"label_ids": [int(r["id"]) for r in data.rows], "seed": seed, "config": to_jsonable(config)}
+    kept = path.with_name(f"{path.stem}-reward-seed{seed}")
+    if cache and kept.with_suffix(".json").exists():
+        try:
+            state, meta = load_checkpoint(kept, "offline-reward")
+        except RatError:
+            meta = {}  # unreadable: learn it again below and overwrite
+        if all(meta.get(k) == v for k, v in key.items()):
+            ensemble.load_state_dict(state["ensemble"])
+            ensemble.eval()
+            return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **meta["metrics"]}
     p = data.pairs
     metrics = ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, data.y, np.random.default_rng(seed))
     ensemble.eval()
-    return ensemble, {"labels": len(data), "label_ids": [int(r["id"]) for r in data.rows], **metrics}
+    if cache:
+        save_checkpoint(kept, "offline-reward", {"ensemble": ensemble.state_dict()}, {**key, "metrics": metrics})
+    return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **metrics}
 
 
 def reward_source(target: TargetBehaviour, ensemble: RewardEnsemble | None) -> RewardFn:
@@ -288,7 +306,7 @@ def train_baseline(method: str, victim: Victim, target: TargetBehaviour, make_en
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     started = time.perf_counter()
     ensemble, reward_metrics = (None, {}) if labels is None else learn_reward(labels, obs_dim, act_dim,
-                                                                           reward_config, seed)
+                                                                           reward_config, seed, cache=True)
     run = Run(out, config)  # made once the inputs are known good, so a mistake leaves nothing behind
     seed_everything(seed)
     meta = {**config, "obs_dim": obs_dim, "act_dim": act_dim}
