@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Sequence
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy import stats

@@ -345,7 +345,7 @@ def _train_ppo(method, run: Run, env, victim, target, reward, epsilon, norm, see
                progress: bool):
     """PPO in the method's adversary MDP, with a checkpoint after every evaluation (resume: run again).
 
-    Returns the policy and the number of PPO gradient steps taken in this call.
+    Returns the policy and the number of PPO epochs (passes over a rollout, as SB3 counts updates) of this call.
     """
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -401,7 +401,7 @@ def _train_ppo(method, run: Run, env, victim, target, reward, epsilon, norm, see
     if remaining > 0:
         model.learn(remaining, callback=Progress(), reset_num_timesteps=False)
     bar.close()
-    return model.policy, int(model._n_updates)  # gradient steps of this session (SB3 counts epochs × minibatches)
+    return model.policy, int(model._n_updates)  # epochs; target_kl may end a rollout's passes early
 
 
 def load_attack(run: str | Path, victim: Victim | None = None) -> tuple[Callable[[np.ndarray], np.ndarray], dict]:
