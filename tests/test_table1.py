@@ -2,17 +2,19 @@
 
 import csv
 import json
+import os
 import shutil
 import socket
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
 
 from rat.errors import RatError
-from rat.table1 import GRID_PRESETS, Cell, grid_cells, markdown_table, run_grid
+from rat.table1 import GRID_PRESETS, Cell, cell_progress, grid_cells, markdown_table, run_grid
 
 SMOKE = GRID_PRESETS["smoke"]
 
@@ -22,8 +24,10 @@ def random_cells(seeds):
 
 
 def test_a_grid_resumes_without_rerunning_finished_cells(tmp_path):
-    first = run_grid(random_cells([0, 1]), SMOKE, tmp_path, jobs=2, echo=lambda _: None)
+    said = []
+    first = run_grid(random_cells([0, 1]), SMOKE, tmp_path, jobs=2, echo=said.append, heartbeat=0.2)
     assert len(first["ran"]) == 2 and not first["failed"]
+    assert any(line.startswith("running:") for line in said)  # a quiet grid still says it is alive
     stamps = {c.key: (c.directory(tmp_path) / "result.json").stat().st_mtime_ns for c in random_cells([0, 1])}
     second = run_grid(random_cells([0, 1, 2]), SMOKE, tmp_path, jobs=1, echo=lambda _: None)
     assert sorted(second["skipped"]) == sorted(stamps) and [r["seed"] for r in second["ran"]] == [2]
@@ -43,6 +47,20 @@ def test_a_preference_baseline_waits_for_its_rat_cells_labels(tmp_path):
                       echo=lambda _: None)
     assert len(result["failed"]) == 1 and "needs the labels of drawer-open-v3/manipulation/rat/seed0" in result["failed"][0]["error"]
     assert (Cell("drawer-open-v3", "manipulation", "sa-rl", 0).directory(tmp_path) / "error.txt").exists()
+
+
+def test_a_running_cell_reports_the_step_its_run_has_logged(tmp_path):
+    cell = Cell("drawer-open-v3", "opposite", "rat", 0)
+    run = cell.directory(tmp_path) / "run"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"rat": {"total_steps": 50000}}))
+    (run / "metrics.csv").write_text("step,behaviour_success\n500,0.0\n12000,1.0\n")
+    assert cell_progress(cell, tmp_path, within=60) == "drawer-open-v3/opposite/rat/seed0 step 12000/50000"
+    old = time.time() - 120
+    os.utime(run / "metrics.csv", (old, old))
+    assert cell_progress(cell, tmp_path, within=60) is None  # not logged lately: waiting or stopped
+    (run.parent / "result.json").write_text("{}")
+    assert cell_progress(cell, tmp_path, within=1e9) is None  # finished
 
 
 def test_bad_grids_are_refused_in_one_line():

@@ -22,7 +22,7 @@ import json
 import os
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, replace
 from multiprocessing import get_context
 from pathlib import Path
@@ -191,9 +191,10 @@ def finished(cell: Cell, out: Path) -> dict | None:
 
 
 def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int = 2, ray_address: str | None = None,
-             echo: Callable[[str], None] = print) -> dict:
+             echo: Callable[[str], None] = print, heartbeat: float = 300.0) -> dict:
     """Run every unfinished cell (RAT cells before the baselines that read their labels) and write the reports.
 
+    Every ``heartbeat`` seconds without a finished cell, ``echo`` gets the step each running cell has reached.
     Returns ``{"ran": [...], "skipped": [...], "failed": [...], "rows": [...]}``.
     """
     out = Path(out)
@@ -214,10 +215,14 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
         echo(f"{len(skipped)} cells already finished; {len(todo)} to run")
     first = sorted((c for c in todo if c.method not in NEEDS_LABELS), key=lambda c: c.method != "rat")  # longest first
     second = [c for c in todo if c.method in NEEDS_LABELS]
-    execute = _ray_executor(ray_address) if ray_address else _process_executor(jobs)
+    execute = _ray_executor(ray_address, heartbeat) if ray_address else _process_executor(jobs, heartbeat)
     ran, failed = [], []
     for wave in (first, second):
         for row in execute(wave, preset, str(out)):
+            if row is None:  # a heartbeat: nothing finished for a while
+                running = [line for c in wave if (line := cell_progress(c, out, 2 * heartbeat))]
+                echo("running: " + "; ".join(running) if running else "running: no cell has logged lately")
+                continue
             (failed if "error" in row else ran).append(row)
             status = row.get("error") or f"{100 * row['attack_success_rate']:.1f}% in {row['minutes']} min"
             echo(f"[{len(ran) + len(failed)}/{len(todo)}] {Cell(row['task'], row['scenario'], row['method'], row['seed']).key}: {status}")
@@ -226,7 +231,21 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
     return {"ran": ran, "skipped": skipped, "failed": failed, "rows": rows}
 
 
-def _process_executor(jobs: int):
+def cell_progress(cell: Cell, out: Path, within: float) -> str | None:
+    """``<cell>: step n/total`` for a cell whose run has logged in the last ``within`` seconds, else None."""
+    run = cell.directory(out) / "run"
+    metrics, config = run / "metrics.csv", run / "config.json"
+    if finished(cell, out) is not None or not metrics.exists() or time.time() - metrics.stat().st_mtime > within:
+        return None
+    lines = metrics.read_text().splitlines()
+    step = lines[-1].split(",", 1)[0] if len(lines) > 1 else "0"
+    settings = json.loads(config.read_text()) if config.exists() else {}
+    total = settings.get("rat", settings.get("ppo", {})).get("total_steps", "?")
+    return f"{cell.key} step {step}/{total}"
+
+
+def _process_executor(jobs: int, heartbeat: float):
+    """Cells in ``jobs`` spawned processes; yields each result row as it finishes, None on a quiet heartbeat."""
     if jobs <= 0:
         raise RatError(f"--jobs must be positive, got {jobs}")
 
@@ -238,14 +257,16 @@ def _process_executor(jobs: int):
                 yield _guarded(cell, preset, out)
             return
         with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-            futures = [pool.submit(_guarded, cell, preset, out) for cell in cells]
-            for future in as_completed(futures):
-                yield future.result()
+            pending = {pool.submit(_guarded, cell, preset, out) for cell in cells}
+            while pending:
+                done, pending = wait(pending, timeout=heartbeat, return_when=FIRST_COMPLETED)
+                yield from (future.result() for future in done) if done else [None]
 
     return execute
 
 
-def _ray_executor(address: str):
+def _ray_executor(address: str, heartbeat: float):
+    """Cells as Ray tasks of one CPU each on the cluster at ``address``; yields like :func:`_process_executor`."""
     ray = require("ray", "ray")
 
     def execute(cells, preset, out):
@@ -256,8 +277,8 @@ def _ray_executor(address: str):
         remote = ray.remote(num_cpus=1)(_guarded)
         pending = [remote.remote(cell, preset, out) for cell in cells]
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            yield ray.get(done[0])
+            done, pending = ray.wait(pending, num_returns=1, timeout=heartbeat)
+            yield ray.get(done[0]) if done else None
 
     return execute
 
