@@ -2,11 +2,12 @@
 
 A white-box reference for the learned attacks: at every step, PA-AD's actor
 (:func:`rat.attacks.gradient.directed_perturbation`, PGD) moves the victim's action along a
-scripted direction: towards the manipulation goal (``reach``), or along +y, pushing the drawer
-shut (``opposite``, drawer-close-v3). No learning is involved, so the numbers say what the
-victim's sensitivity to ε allows a greedy attacker, not what an attack method achieves.
+scripted direction: towards the manipulation goal (``reach``), or along the action of the
+target task's Meta-World scripted expert (``opposite``: e.g. faucet-open-v3's expert against the
+faucet-close victim). No learning is involved, so the numbers say what the victim's sensitivity
+to ε allows a greedy attacker, not what an attack method achieves.
 
-    python benchmarks/attackability.py --epsilons 0.1,0.15,0.2 --episodes 5
+    python benchmarks/attackability.py --victim faucet-close-v3 --targets opposite --epsilons 0.1,0.2 --episodes 5
 """
 
 from __future__ import annotations
@@ -21,20 +22,21 @@ from rat.attacks.threat import perturb
 from rat.envs import get_target, make_task
 from rat.envs.targets import REACH_GOAL
 from rat.victims import load_victim
+from rat.victims.experts import expert_for
 
 
-def direction(target: str, obs: np.ndarray) -> torch.Tensor:
-    d = torch.zeros(1, 4)
+def direction(target: str, obs: np.ndarray, expert) -> torch.Tensor:
     if target == "reach":
+        d = torch.zeros(1, 4)
         d[0, :3] = torch.as_tensor(REACH_GOAL - obs[:3])
-    else:  # drawer-close: push the handle away from the robot (+y)
-        d[0, 1] = 1.0
-    return d
+        return d
+    return torch.as_tensor(expert.get_action(obs), dtype=torch.float32).unsqueeze(0)  # the target task's expert
 
 
 def run(victim_task: str, target_name: str, epsilon: float, episodes: int, steps: int) -> dict:
     victim, target = load_victim(f"zoo:{victim_task}"), get_target(target_name)
     env = make_task(target.env_task(victim_task), seed=0)
+    expert = expert_for(target.env_task(victim_task))
     rng = np.random.default_rng(0)
     successes, closest = [], []
     for episode in range(episodes):
@@ -42,7 +44,7 @@ def run(victim_task: str, target_name: str, epsilon: float, episodes: int, steps
         success, best = False, np.inf
         for _ in range(500):
             s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
-            delta = directed_perturbation(victim, s, direction(target_name, obs), epsilon, "linf", steps=steps,
+            delta = directed_perturbation(victim, s, direction(target_name, obs, expert), epsilon, "linf", steps=steps,
                                           generator=rng)
             with torch.no_grad():
                 action = victim.act(perturb(s, delta, epsilon)).squeeze(0).numpy()
@@ -60,6 +62,7 @@ def run(victim_task: str, target_name: str, epsilon: float, episodes: int, steps
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--victim", default="drawer-open-v3")
+    parser.add_argument("--targets", default="reach,opposite")
     parser.add_argument("--epsilons", default="0.1,0.15,0.2")
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--pgd-steps", type=int, default=10)
@@ -67,7 +70,7 @@ def main() -> None:
     torch.set_num_threads(1)
     print("| target | ε (ℓ∞) | greedy white-box success | gripper's closest approach to the reach goal (m) |")
     print("| --- | ---: | ---: | ---: |")
-    for target in ("reach", "opposite"):
+    for target in args.targets.split(","):
         for epsilon in (float(e) for e in args.epsilons.split(",")):
             r = run(args.victim, target, epsilon, args.episodes, args.pgd_steps)
             print(f"| {target} | {epsilon:g} | {100 * r['success']:.0f}% ({args.episodes} ep.) | "
