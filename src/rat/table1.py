@@ -355,7 +355,8 @@ def plot_curves(out: Path, task: str, rows: list[dict]) -> Path | None:
             if curves:
                 steps = sorted(set().union(*curves))
                 mean = [100 * np.mean([c[s] for c in curves if s in c]) for s in steps]
-                ax.plot(steps, mean, marker="o", label=f"{METHOD_NAMES[method]} (n={len(curves)})")
+                ax.plot(steps, mean, marker="o", color=f"C{METHODS.index(method)}",  # one colour per method in every panel
+                        label=f"{METHOD_NAMES[method]} (n={len(curves)})")
         ax.set(title=f"{task}: {scenario}", xlabel="environment steps", ylabel="attack success (%)", ylim=(-5, 105))
         ax.grid(alpha=0.3)
         if ax.get_lines():
