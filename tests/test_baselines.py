@@ -2,6 +2,9 @@
 
 import csv
 import json
+import multiprocessing
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -154,6 +157,37 @@ def test_the_learned_reward_is_kept_beside_its_label_store_and_relearnt_when_the
     (tmp_path / "labels-reward-seed0.safetensors").write_bytes(b"garbage")
     learn_reward(store, 4, 2, seed=0, cache=True)  # a damaged copy is learnt again, not trusted
     assert rounds == [1, 1, 1]
+
+
+def _learn_cached(store, rounds):
+    from rat.preferences.reward_model import RewardEnsemble
+
+    train_round = RewardEnsemble.train_round
+
+    def counted(self, *a):
+        with rounds.get_lock():
+            rounds.value += 1
+        time.sleep(1.0)  # long enough for the other process to reach the cache while this one learns
+        return train_round(self, *a)
+
+    RewardEnsemble.train_round = counted
+    learn_reward(store, 4, 2, seed=0, cache=True)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="fork and fcntl are POSIX")
+def test_two_processes_wanting_the_same_uncached_reward_learn_it_once(tmp_path):
+    store = tmp_path / "labels.sqlite"
+    labelled_store(store, 30)
+    fork = multiprocessing.get_context("fork")
+    rounds = fork.Value("i", 0)
+    workers = [fork.Process(target=_learn_cached, args=(store, rounds)) for _ in range(2)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join(timeout=120)
+    assert [w.exitcode for w in workers] == [0, 0]
+    assert rounds.value == 1  # the second waited on the lock and read the first's ensemble
+    assert (tmp_path / "labels-reward-seed0.json").exists()
 
 
 def test_baselines_refuse_bad_input_in_one_line(tmp_path):

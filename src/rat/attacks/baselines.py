@@ -23,6 +23,7 @@ A trained baseline is a run directory like RAT's: ``config.json``, ``metrics.csv
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import dataclass, replace
@@ -59,6 +60,8 @@ def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardM
     With ``cache``, the ensemble is kept beside the store (``<store>-reward-seed<seed>.safetensors``) and
     reused while the labels, seed and configuration are the same: SA-RL and PA-AD compared with one RAT
     run, and a resumed baseline, then learn it once. Training is deterministic, so this changes no number.
+    Processes that want the same uncached ensemble at once (two cells of a grid) take turns on a lock
+    file beside it: one learns it, the others wait and read it.
     """
     path = Path(labels)
     if not path.exists():
@@ -74,6 +77,13 @@ def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardM
     ensemble = RewardEnsemble(obs_dim, act_dim, config)
     key = {"label_ids": [int(r["id"]) for r in data.rows], "seed": seed, "config": to_jsonable(config)}
     kept = path.with_name(f"{path.stem}-reward-seed{seed}")
+    with _exclusive(kept.with_suffix(".lock")) if cache else contextlib.nullcontext():
+        return _learn_or_reuse(ensemble, data, key, kept, cache, seed)
+
+
+def _learn_or_reuse(ensemble: RewardEnsemble, data, key: dict, kept: Path, cache: bool,
+                    seed: int) -> tuple[RewardEnsemble, dict]:
+    """The ensemble of ``key`` read from ``kept`` if it is there, else learnt (and kept, with ``cache``)."""
     if cache and kept.with_suffix(".json").exists():
         try:
             state, meta = load_checkpoint(kept, "offline-reward")
@@ -89,6 +99,22 @@ def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardM
     if cache:
         save_checkpoint(kept, "offline-reward", {"ensemble": ensemble.state_dict()}, {**key, "metrics": metrics})
     return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **metrics}
+
+
+@contextlib.contextmanager
+def _exclusive(lock: Path):
+    """Hold an exclusive advisory lock on ``lock`` (created if missing); where ``fcntl`` is missing, none."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: two processes may both learn the ensemble, as before
+        yield
+        return
+    with open(lock, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def reward_source(target: TargetBehaviour, ensemble: RewardEnsemble | None) -> RewardFn:
