@@ -185,6 +185,7 @@ def test_two_processes_wanting_the_same_uncached_reward_learn_it_once(tmp_path):
         w.start()
     for w in workers:
         w.join(timeout=120)
+        w.kill()  # a worker still waiting after two minutes is a failure below, not a leftover process
     assert [w.exitcode for w in workers] == [0, 0]
     assert rounds.value == 1  # the second waited on the lock and read the first's ensemble
     assert (tmp_path / "labels-reward-seed0.json").exists()

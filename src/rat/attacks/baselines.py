@@ -78,27 +78,21 @@ def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardM
     key = {"label_ids": [int(r["id"]) for r in data.rows], "seed": seed, "config": to_jsonable(config)}
     kept = path.with_name(f"{path.stem}-reward-seed{seed}")
     with _exclusive(kept.with_suffix(".lock")) if cache else contextlib.nullcontext():
-        return _learn_or_reuse(ensemble, data, key, kept, cache, seed)
-
-
-def _learn_or_reuse(ensemble: RewardEnsemble, data, key: dict, kept: Path, cache: bool,
-                    seed: int) -> tuple[RewardEnsemble, dict]:
-    """The ensemble of ``key`` read from ``kept`` if it is there, else learnt (and kept, with ``cache``)."""
-    if cache and kept.with_suffix(".json").exists():
-        try:
-            state, meta = load_checkpoint(kept, "offline-reward")
-        except RatError:
-            meta = {}  # unreadable: learn it again below and overwrite
-        if all(meta.get(k) == v for k, v in key.items()):
-            ensemble.load_state_dict(state["ensemble"])
-            ensemble.eval()
-            return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **meta["metrics"]}
-    p = data.pairs
-    metrics = ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, data.y, np.random.default_rng(seed))
-    ensemble.eval()
-    if cache:
-        save_checkpoint(kept, "offline-reward", {"ensemble": ensemble.state_dict()}, {**key, "metrics": metrics})
-    return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **metrics}
+        if cache and kept.with_suffix(".json").exists():
+            try:
+                state, meta = load_checkpoint(kept, "offline-reward")
+            except RatError:
+                meta = {}  # unreadable: learn it again below and overwrite
+            if all(meta.get(k) == v for k, v in key.items()):
+                ensemble.load_state_dict(state["ensemble"])
+                ensemble.eval()
+                return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **meta["metrics"]}
+        p = data.pairs
+        metrics = ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, data.y, np.random.default_rng(seed))
+        ensemble.eval()
+        if cache:
+            save_checkpoint(kept, "offline-reward", {"ensemble": ensemble.state_dict()}, {**key, "metrics": metrics})
+        return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **metrics}
 
 
 @contextlib.contextmanager
