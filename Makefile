@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.rat-installed
 
-.PHONY: demo test install zoo clean
+.PHONY: demo test test-fast install zoo clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The fast tier while working: everything but the tests marked slow (Meta-World episodes, PPO, Ray, subprocesses).
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 zoo: $(STAMP)
 	$(BIN)/rat victim zoo --jobs 2

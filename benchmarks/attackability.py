@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from rat.attacks.gradient import directed_perturbation
-from rat.attacks.threat import perturb
+from rat.attacks.threat import ThreatModel
 from rat.envs import get_target, make_task
 from rat.envs.targets import REACH_GOAL
 from rat.victims import load_victim
@@ -37,19 +37,19 @@ def run(victim_task: str, target_name: str, epsilon: float, episodes: int, steps
     victim, target = load_victim(f"zoo:{victim_task}"), get_target(target_name)
     env = make_task(target.env_task(victim_task), seed=0)
     expert = expert_for(target.env_task(victim_task))
-    rng = np.random.default_rng(0)
+    rng, threat = np.random.default_rng(0), ThreatModel(epsilon, "linf")
     successes, closest = [], []
     for episode in range(episodes):
         obs, _ = env.reset(seed=1000 + episode)
-        success, best = False, np.inf
+        success, best, test = False, np.inf, target.episode_success()
         for _ in range(500):
             s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
-            delta = directed_perturbation(victim, s, direction(target_name, obs, expert), epsilon, "linf", steps=steps,
+            delta = directed_perturbation(victim, s, direction(target_name, obs, expert), threat, steps=steps,
                                           generator=rng)
             with torch.no_grad():
-                action = victim.act(perturb(s, delta, epsilon)).squeeze(0).numpy()
+                action = victim.act(threat.perturb(s, delta)).squeeze(0).numpy()
             obs, _, terminated, truncated, info = env.step(action)
-            success |= target.success(info)
+            success |= test(info)
             best = min(best, float(np.linalg.norm(info["tcp_pos"] - REACH_GOAL)))
             if terminated or truncated:
                 break

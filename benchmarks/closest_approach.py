@@ -10,18 +10,19 @@ import sys
 
 import numpy as np
 
-from rat.attacks.rat import adversary_function, load_adversary
-from rat.attacks.threat import AttackedObservation
+from rat.attacks import AttackedObservation, ThreatModel, load_attack
+from rat.attacks.base import saved_attack_meta
 from rat.envs import REACH_GOAL, make_task
 from rat.victims import load_victim
 from rat.victims.base import numpy_policy
 
 run, episodes = sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 5
-adversary, meta = load_adversary(run)
-victim = numpy_policy(load_victim(meta["victim"]))
-for name, wrap in (("clean", lambda e: e),
-                   ("attacked", lambda e: AttackedObservation(e, adversary_function(adversary), meta["rat"]["epsilon"],
-                                                              meta["rat"]["norm"]))):
+victim = load_victim(saved_attack_meta(run)["victim"])
+perturbation, meta = load_attack(run, victim)  # RAT's or any baseline's
+settings = meta.get("rat", meta)
+threat = ThreatModel(settings["epsilon"], settings["norm"])
+victim = numpy_policy(victim)
+for name, wrap in (("clean", lambda e: e), ("attacked", lambda e: AttackedObservation(e, perturbation, threat))):
     closest = []
     for ep in range(episodes):
         env = wrap(make_task(meta["task"], seed=3))

@@ -11,20 +11,17 @@ weighting update per 1,000 steps, and one reward round (training plus relabellin
 from __future__ import annotations
 
 import statistics
+import tempfile
 import time
+from pathlib import Path
 
-import numpy as np
 import torch
 
-from rat.attacks.losses import Adversary, WeightingNetwork
-from rat.attacks.presets import rat_config
-from rat.attacks.rat import adversary_update, weighting_update
-from rat.attacks.threat import perturb
-from rat.envs import get_target, make_task
-from rat.preferences.pebble import PebbleLearner
+from rat.attacks.rat import RATTrainer
+from rat.experiments.presets import rat_config
+from rat.experiments.runner import attack_setup
 from rat.preferences.store import LabelStore
 from rat.preferences.teacher import ScriptedTeacher
-from rat.victims import load_victim
 
 
 def timed(fn, repeats: int, warmup: int = 2) -> float:
@@ -40,16 +37,13 @@ def timed(fn, repeats: int, warmup: int = 2) -> float:
 
 def main() -> None:
     torch.set_num_threads(1)
-    import tempfile
 
     cfg = rat_config("cpu", budget=1000)
-    env, target, victim = make_task("drawer-open-v3"), get_target("reach"), load_victim("zoo:drawer-open-v3")
-    rng = np.random.default_rng(0)
+    setup = attack_setup("zoo:drawer-open-v3", "reach", cfg.threat, progress=False)
+    env, target = setup.make_env(0), setup.target
     tmp = tempfile.mkdtemp()
-    learner = PebbleLearner(39, 4, cfg.pebble, LabelStore(f"{tmp}/labels.sqlite"), "profile", rng)
-    adversary, weighting = Adversary(39, cfg.adversary_hidden), WeightingNetwork(39)
-    adv_opt = torch.optim.Adam(adversary.parameters(), lr=cfg.adversary_lr)
-    w_opt = torch.optim.Adam(weighting.parameters(), lr=cfg.weighting_lr)
+    rat = RATTrainer(cfg, setup, env, LabelStore(f"{tmp}/labels.sqlite"), "profile", Path(tmp) / "snapshots")
+    learner, rng = rat.learner, rat.rng
 
     obs, _ = env.reset(seed=0)
     for _ in range(10_000):  # fill the buffer and history with real transitions
@@ -62,22 +56,17 @@ def main() -> None:
     def env_steps():
         o, _ = env.reset(seed=1)
         for t in range(1000):
-            with torch.no_grad():
-                s = torch.as_tensor(o, dtype=torch.float32).unsqueeze(0)
-                a = victim.act(perturb(s, adversary(s, torch.randn_like(s)), 0.1)).squeeze(0).numpy() if t % 2 else learner.agent.act(o)
+            a = rat.victim_action(o) if t % 2 else learner.agent.act(o)
             o, _, term, trunc, info = env.step(a)
             target.reward(o, a, o, info)
             if term or trunc:
                 o, _ = env.reset()
 
-    batch = lambda n: learner.buffer.sample(n, rng)["obs"]  # noqa: E731
     rows = {
         "environment (1,000 steps, acting included)": timed(env_steps, 3, 1),
         "intention SAC (1,000 updates, batch 256)": 1000 * timed(lambda: learner.update(), 50, 5),
-        "adversary (100 updates, batch 256)": 100 * timed(
-            lambda: adversary_update(adversary, adv_opt, weighting, victim, learner.agent, batch(256), cfg), 30),
-        "weighting network (1 hypergradient update, batch 256)": timed(
-            lambda: weighting_update(weighting, w_opt, adversary, victim, learner.agent, batch(256), batch(256), cfg), 10),
+        "adversary (100 updates, batch 256)": 100 * timed(rat.adversary_step, 30),
+        "weighting network (1 hypergradient update, batch 256)": timed(rat.weighting_step, 10),
     }
     teacher = ScriptedTeacher()
     pairs = learner.history.sample_pairs(1000, 50, rng)

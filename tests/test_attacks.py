@@ -8,9 +8,9 @@ from scipy import stats
 from point_env import HORIZON, PointGoal
 from rat.agents.networks import TanhGaussianActor, TwinCritic
 from rat.agents.sac import SAC, SACConfig
-from rat.attacks.losses import Adversary, WeightingNetwork, gaussian_kl, hypergradient, inner_loss, kl_per_state, outer_loss
+from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss
 from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, weighting_update
-from rat.attacks.threat import NORMS, AttackedObservation, perturb, perturbation_norm, project, random_delta
+from rat.attacks.threat import NORMS, AttackedObservation, ThreatModel, perturbation_norm, project, random_delta
 from rat.errors import RatError
 from rat.victims import ModuleVictim
 
@@ -23,9 +23,12 @@ def test_perturbations_stay_in_the_ball_on_random_inputs_at_large_scale(norm):
     obs = torch.randn(20_000, 39, dtype=torch.float64) * 5
     delta = torch.randn(20_000, 39, dtype=torch.float64) * torch.logspace(-3, 3, 20_000, dtype=torch.float64)[:, None]
     for eps in (0.0, 1e-3, 0.1, 2.5):
-        diff = (perturb(obs, delta, eps, norm) - obs).numpy()
-        assert perturbation_norm(diff, norm).max() <= eps * (1 + 1e-9) + 1e-12
-    np.testing.assert_array_equal(perturb(obs, delta, 0.0, norm).numpy(), obs.numpy())  # epsilon 0 changes nothing
+        threat = ThreatModel(eps, norm)
+        attacked = threat.perturb(obs, delta)
+        assert perturbation_norm((attacked - obs).numpy(), norm).max() <= eps * (1 + 1e-9) + 1e-12
+        assert threat.contains(obs.numpy(), attacked.numpy(), tolerance=1e-9)
+    np.testing.assert_array_equal(ThreatModel(0.0, norm).perturb(obs, delta).numpy(), obs.numpy())  # epsilon 0 changes nothing
+    assert not ThreatModel(0.1, norm).contains(obs.numpy(), obs.numpy() + 1.0)
 
 
 @pytest.mark.parametrize("norm", ["linf", "l2", "l1"])
@@ -63,7 +66,7 @@ def test_random_attack_is_in_the_unit_ball(norm):
 
 
 def test_the_wrapper_shows_the_attacked_observation_and_keeps_the_true_state():
-    env = AttackedObservation(PointGoal(0), lambda o: np.array([1.0, -1.0, 1.0, 1.0]) * 5, 0.1, "linf")
+    env = AttackedObservation(PointGoal(0), lambda o: np.array([1.0, -1.0, 1.0, 1.0]) * 5, ThreatModel(0.1, "linf"))
     obs, info = env.reset(seed=3)
     np.testing.assert_allclose(obs - info["true_obs"], [0.1, -0.1, 0.1, 0.1])
     inner = env.unwrapped
@@ -71,9 +74,9 @@ def test_the_wrapper_shows_the_attacked_observation_and_keeps_the_true_state():
     obs, _, _, _, info = env.step(np.zeros(2))
     assert info["perturbation_norm"] == pytest.approx(0.1) and max(env.norms) <= 0.1 + 1e-12
     with pytest.raises(RatError, match="epsilon must be"):
-        AttackedObservation(PointGoal(0), lambda o: o, -0.1)
+        ThreatModel(-0.1)
     with pytest.raises(RatError, match="unknown norm"):
-        AttackedObservation(PointGoal(0), lambda o: o, 0.1, "l3")
+        ThreatModel(0.1, "l3")
 
 
 # --- KL, hypergradient ------------------------------------------------------------------------------------------
@@ -116,19 +119,18 @@ def tiny_problem(dtype=torch.float64):
 def test_hypergradient_matches_a_finite_difference():
     p, obs_i, noise_i, obs_o, noise_o = tiny_problem()
     temperature, eta, eps = torch.tensor(0.1, dtype=torch.float64), 0.5, 0.3
-    grads = hypergradient(p["adversary"], p["weighting"], p["victim"], p["intention"], p["critic"], temperature, obs_i,
-                          noise_i, obs_o, noise_o, eps, "linf", eta)
+    objective = Imitation(p["victim"], p["intention"], p["critic"], temperature, ThreatModel(eps, "linf"))
+    grads = hypergradient(objective, p["adversary"], p["weighting"], obs_i, noise_i, obs_o, noise_o, eta)
 
     def outer_after_virtual_step():
         params = {k: v.detach().requires_grad_(True) for k, v in p["adversary"].named_parameters()}
-        kl = kl_per_state(p["adversary"], params, p["victim"], p["intention"], obs_i, noise_i, eps, "linf")
+        kl = objective.kl(p["adversary"], params, obs_i, noise_i)
         with torch.no_grad():
             w = p["weighting"](obs_i)
         g = torch.autograd.grad(inner_loss(w, kl), list(params.values()))
         virtual = {k: v - eta * gi for (k, v), gi in zip(params.items(), g)}
         with torch.no_grad():
-            return outer_loss(p["adversary"], virtual, p["victim"], p["critic"], temperature, obs_o, noise_o, eps,
-                              "linf").item()
+            return objective.outer(p["adversary"], virtual, obs_o, noise_o).item()
 
     checked = 0
     for param, grad in zip(p["weighting"].parameters(), grads):
@@ -149,8 +151,9 @@ def test_hypergradient_matches_a_finite_difference():
 
 def test_batch_mean_hypergradient_is_a_different_approximation():
     p, obs_i, noise_i, obs_o, noise_o = tiny_problem()
-    args = (p["adversary"], p["weighting"], p["victim"], p["intention"], p["critic"], torch.tensor(0.1, dtype=torch.float64),
-            obs_i, noise_i, obs_o, noise_o, 0.3, "linf", 0.5)
+    objective = Imitation(p["victim"], p["intention"], p["critic"], torch.tensor(0.1, dtype=torch.float64),
+                          ThreatModel(0.3, "linf"))
+    args = (objective, p["adversary"], p["weighting"], obs_i, noise_i, obs_o, noise_o, 0.5)
     exact, approx = hypergradient(*args), hypergradient(*args, form="batch-mean")
     assert all(a.shape == b.shape for a, b in zip(exact, approx))
     assert not all(torch.allclose(a, b) for a, b in zip(exact, approx))
@@ -184,7 +187,8 @@ def test_inner_step_moves_only_the_adversary_and_never_the_victim(ablation):
     victim, intention, adversary, weighting, cfg, obs = isolation_setup(ablation)
     before = snapshot(adversary, weighting, intention.actor, intention.critic, victim)
     opt = torch.optim.Adam(adversary.parameters(), lr=1e-2)
-    adversary_update(adversary, opt, weighting, victim, intention, obs, cfg)
+    objective = Imitation(victim, intention.actor, intention.critic, intention.alpha, cfg.threat)
+    adversary_update(adversary, opt, weighting, objective, obs, cfg.ablation)
     assert changed(before[0], adversary) and len(before[4]) == 4  # the victim has weights to protect
     for b, m in zip(before[1:], (weighting, intention.actor, intention.critic, victim)):
         assert not changed(b, m)
@@ -195,7 +199,8 @@ def test_outer_step_moves_only_the_weighting_network():
     victim, intention, adversary, weighting, cfg, obs = isolation_setup()
     before = snapshot(adversary, weighting, intention.actor, intention.critic)
     opt = torch.optim.Adam(weighting.parameters(), lr=1e-2)
-    weighting_update(weighting, opt, adversary, victim, intention, obs, torch.randn(32, 4), cfg)
+    objective = Imitation(victim, intention.actor, intention.critic, intention.alpha, cfg.threat)
+    weighting_update(weighting, opt, adversary, objective, obs, torch.randn(32, 4), cfg.adversary_lr, cfg.hypergradient)
     assert changed(before[1], weighting)
     for b, m in zip([before[0], *before[2:]], (adversary, intention.actor, intention.critic)):
         assert not changed(b, m) and all(q.grad is None for q in m.parameters())
@@ -257,7 +262,7 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
         save_checkpoint(tmp_path / f"adversary-{1000 * (i + 1)}", "adversary-snapshot",
                         {"adversary": snap.state_dict()}, {"step": 1000 * (i + 1)})
     current = Adversary(4, 16)  # the adversary at the end of training: another candidate ("last")
-    scores = [learned_return(victim, a, PointGoal(3), reward, cfg, 3, seed=3 * 10**7) for a in snapshots + [current]]
+    scores = [learned_return(victim, a, PointGoal(3), reward, cfg.threat, 3, seed=3 * 10**7) for a in snapshots + [current]]
     expected = [a.state_dict() for a in snapshots + [current]][int(np.argmax(scores))]
     expected = {k: v.clone() for k, v in expected.items()}
     result = select_by_learned_reward(tmp_path, current, victim, reward, PointGoal(3), cfg)

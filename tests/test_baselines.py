@@ -13,18 +13,22 @@ from gymnasium.utils.env_checker import check_env
 from scipy import stats
 
 from point_env import BESIDE, PointGoal, point_victim
-from rat.attacks.baselines import (
-    DirectorEnv,
-    PPOConfig,
-    StateAdversaryEnv,
-    learn_reward,
-    load_attack,
-    reward_source,
-    train_baseline,
-)
+from rat.attacks import AttackSetup, ThreatModel, get_attack, load_attack
+from rat.attacks.rl import DirectorEnv, PPOConfig, StateAdversaryEnv
+from rat.attacks.simple import SimpleConfig
+from rat.preferences.offline import learn_reward, reward_source
+
+
+def train_baseline(method, victim, target, make_env, out, epsilon=0.1, ppo=None, labels=None, seed=0, reward=None):
+    """Train a registered baseline against ``victim`` (oracle unless given labels)."""
+    attack = get_attack(method)
+    reward = reward or ("labels" if labels is not None else ("oracle" if "oracle" in attack.rewards else "none"))
+    setup = AttackSetup(victim, target, make_env, ThreatModel(epsilon), seed, reward, labels, progress=False)
+    config = (ppo or PPOConfig()) if attack.config is PPOConfig else SimpleConfig()
+    return attack.train(setup, config, out)
 from rat.attacks.gradient import directed_perturbation, mad_perturbation
-from rat.attacks.rat import evaluate_attack
-from rat.attacks.threat import NORMS, perturbation_norm, random_delta
+from rat.attacks import evaluate_attack
+from rat.attacks.threat import perturbation_norm, random_delta
 from rat.envs import get_target, make_task
 from rat.errors import RatError
 from rat.preferences.segments import SegmentPairs
@@ -43,7 +47,8 @@ def zoo_victim():
 def test_the_sa_rl_environment_passes_gymnasiums_checker_and_stays_in_the_ball(zoo_victim):
     target = get_target("reach")
     for norm in ("linf", "l2", "l1"):
-        env = StateAdversaryEnv(make_task("drawer-open-v3", seed=0), zoo_victim, target.reward, target, EPS, norm)
+        env = StateAdversaryEnv(make_task("drawer-open-v3", seed=0), zoo_victim, target.reward, target,
+                                ThreatModel(EPS, norm))
         check_env(env, skip_render_check=True)
         env.reset(seed=1)
         rng = np.random.default_rng(0)
@@ -52,7 +57,7 @@ def test_the_sa_rl_environment_passes_gymnasiums_checker_and_stays_in_the_ball(z
             *_, info = env.step(action)
             assert perturbation_norm(info["perturbation"], norm) <= EPS + 1e-6
         env.close()
-    director = DirectorEnv(make_task("drawer-open-v3", seed=0), zoo_victim, target.reward, target, EPS)
+    director = DirectorEnv(make_task("drawer-open-v3", seed=0), zoo_victim, target.reward, target, ThreatModel(EPS))
     check_env(director, skip_render_check=True)
     director.reset(seed=2)
     for _ in range(10):
@@ -73,7 +78,7 @@ def test_the_pa_ad_actor_moves_the_victims_action_along_the_direction_inside_the
     for norm in ("linf", "l2", "l1"):
         for steps in (1, 10):  # FGSM from a random start (the paper's), PGD
             direction = torch.as_tensor(rng.standard_normal((len(s), 4)), dtype=torch.float32)
-            delta = directed_perturbation(zoo_victim, s, direction, EPS, norm, steps=steps, generator=rng)
+            delta = directed_perturbation(zoo_victim, s, direction, ThreatModel(EPS, norm), steps=steps, generator=rng)
             assert (perturbation_norm((EPS * delta).numpy(), norm) <= EPS + 1e-6).all()
             with torch.no_grad():
                 change = zoo_victim.act(s + EPS * delta) - zoo_victim.act(s)
@@ -82,7 +87,7 @@ def test_the_pa_ad_actor_moves_the_victims_action_along_the_direction_inside_the
             # significantly so, and mostly positive once PGD searches the ball.
             assert stats.ttest_1samp(cosine, 0.0, alternative="greater").pvalue < 0.01, f"{norm}, {steps} steps"
             assert steps == 1 or (cosine > 0).mean() > 2 / 3, f"{norm}, {steps} steps: {(cosine > 0).mean():.2f}"
-    mad = mad_perturbation(zoo_victim, s, EPS, "linf", generator=rng)
+    mad = mad_perturbation(zoo_victim, s, ThreatModel(EPS), generator=rng)
     with torch.no_grad():
         mad_change = (zoo_victim.act(s + EPS * mad) - zoo_victim.act(s)).norm(dim=-1)
         random_change = (zoo_victim.act(s + EPS * torch.as_tensor(
@@ -95,22 +100,21 @@ def small_ppo(steps):
                      target_kl=0.05, eval_every=4000, eval_episodes=10, final_eval_episodes=50)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method, steps", [("sa-rl", 16000), ("pa-ad", 8000)])
 def test_oracle_baselines_beat_a_random_attack_on_the_point_environment(tmp_path, method, steps):
-    report = train_baseline(method, point_victim(), BESIDE, PointGoal, tmp_path / method, EPS, ppo=small_ppo(steps),
-                            progress=False)
-    random = train_baseline("random", point_victim(), BESIDE, PointGoal, tmp_path / "random", EPS, ppo=small_ppo(steps),
-                            progress=False)
-    hits, rnd = round(report["attack_success_rate"] * 50), round(random["attack_success_rate"] * 50)
+    report = train_baseline(method, point_victim(), BESIDE, PointGoal, tmp_path / method, EPS, ppo=small_ppo(steps))
+    random = train_baseline("random", point_victim(), BESIDE, PointGoal, tmp_path / "random", EPS, ppo=small_ppo(steps))
+    hits, rnd = round(report.attack_success_rate * 50), round(random.attack_success_rate * 50)
     p = stats.fisher_exact([[hits, 50 - hits], [rnd, 50 - rnd]], alternative="greater").pvalue
     assert hits / 50 >= 0.15 and p < 0.01, f"{method} {hits}/50, random {rnd}/50, p={p:.2g}"
-    assert report["variant"] == "oracle" and report["max_perturbation"] <= EPS + 1e-9
+    assert report.reward == "oracle" and report.max_perturbation <= EPS + 1e-9
     with open(tmp_path / method / "metrics.csv") as f:
         evals = [row["eval_success_rate"] for row in csv.DictReader(f) if row.get("eval_success_rate")]
-    assert len(evals) == steps // 4000 and report["ppo_updates"] > 50  # PPO's updates ran and were evaluated
+    assert len(evals) == steps // 4000 and report.details["ppo_updates"] > 50  # PPO's updates ran and were evaluated
     attack, meta = load_attack(tmp_path / method, point_victim())  # and the saved attack is the trained one
-    again = evaluate_attack(point_victim(), attack, PointGoal(7), BESIDE, EPS, "linf", 50, seed=2 * 10**7)
-    assert meta["method"] == method and abs(again.result.success_rate - report["attack_success_rate"]) < 0.15
+    again = evaluate_attack(point_victim(), attack, PointGoal(7), BESIDE, ThreatModel(EPS), 50, seed=2 * 10**7)
+    assert meta["method"] == method and abs(again.result.success_rate - report.attack_success_rate) < 0.15
 
 
 def labelled_store(path, n, source="rat-run", seed=0):
@@ -124,6 +128,7 @@ def labelled_store(path, n, source="rat-run", seed=0):
         return store.add(pairs, (r1 > r0).astype(float), {"type": "scripted"}, source=source, round=0)
 
 
+@pytest.mark.slow
 def test_a_baseline_given_a_label_set_reads_exactly_those_labels(tmp_path):
     ids = labelled_store(tmp_path / "labels.sqlite", 60)
     ensemble, metrics = learn_reward(tmp_path / "labels.sqlite", 4, 2, seed=0)
@@ -132,11 +137,12 @@ def test_a_baseline_given_a_label_set_reads_exactly_those_labels(tmp_path):
     r = reward_source(BESIDE, ensemble)
     assert r(np.zeros(4), np.zeros(2), None, {}) > r(np.array([0.5, 0, 0, 0]), np.zeros(2), None, {})
     report = train_baseline("sa-rl", point_victim(), BESIDE, PointGoal, tmp_path / "run", EPS, ppo=small_ppo(800),
-                            labels=tmp_path / "labels.sqlite", progress=False)
-    assert report["variant"] == "preference" and report["labels"] == 60
+                            labels=tmp_path / "labels.sqlite")
+    assert report.reward == "labels" and report.labels == 60
     assert json.loads((tmp_path / "run" / "labels_used.json").read_text()) == ids
 
 
+@pytest.mark.slow
 def test_the_learned_reward_is_kept_beside_its_label_store_and_relearnt_when_the_labels_change(tmp_path, monkeypatch):
     from rat.preferences.reward_model import RewardEnsemble
 
@@ -174,6 +180,7 @@ def _learn_cached(store, rounds):
     learn_reward(store, 4, 2, seed=0, cache=True)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(sys.platform == "win32", reason="fork and fcntl are POSIX")
 def test_two_processes_wanting_the_same_uncached_reward_learn_it_once(tmp_path):
     store = tmp_path / "labels.sqlite"
@@ -194,13 +201,15 @@ def test_two_processes_wanting_the_same_uncached_reward_learn_it_once(tmp_path):
 def test_baselines_refuse_bad_input_in_one_line(tmp_path):
     with pytest.raises(RatError, match="no label store"):
         train_baseline("pa-ad", point_victim(), BESIDE, PointGoal, tmp_path / "a", labels=tmp_path / "none.sqlite")
-    with pytest.raises(RatError, match="unknown baseline"):
+    with pytest.raises(RatError, match="unknown attack 'fgsm'"):
         train_baseline("fgsm", point_victim(), BESIDE, PointGoal, tmp_path / "b")
-    with pytest.raises(RatError, match="takes no labels"):
+    with pytest.raises(RatError, match="learns from none, not 'labels'"):
         train_baseline("random", point_victim(), BESIDE, PointGoal, tmp_path / "c", labels=tmp_path / "x")
+    with pytest.raises(RatError, match="give --labels STORE"):
+        train_baseline("sa-rl", point_victim(), BESIDE, PointGoal, tmp_path / "d", reward="labels")
     labelled_store(tmp_path / "labels.sqlite", 4)
     with pytest.raises(RatError, match="labels in .* are for observations 4-d"):
         learn_reward(tmp_path / "labels.sqlite", 39, 4)
     with pytest.raises(RatError, match="must be positive"):
         PPOConfig(total_steps=-1)
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert not any((tmp_path / name).exists() for name in "abcd")

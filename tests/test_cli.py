@@ -3,9 +3,11 @@
 import sys
 
 import gymnasium as gym
+import click
 import pytest
 
 from rat.cli import main
+from rat.errors import RatError
 from rat.checkpoint import save_checkpoint
 
 
@@ -30,6 +32,7 @@ def test_listings(capsys):
     assert code == 0 and "reach" in out and "opposite" in out
 
 
+@pytest.mark.slow
 def test_victim_eval_reports_success_with_an_interval_and_writes_a_video(capsys, tmp_path):
     video = tmp_path / "episode.mp4"
     code, out, err = run(capsys, "victim", "eval", "zoo:drawer-open-v3", "--episodes", "2", "--video", str(video),
@@ -91,6 +94,7 @@ def test_negative_numbers(capsys, tmp_path):
                            "--out", str(tmp_path / "r"))[::2], "bc-updates must be positive")
 
 
+@pytest.mark.slow
 def test_intention_train_reports_success_reward_quality_and_plots(capsys, tmp_path):
     out = tmp_path / "run"
     code, text, err = run(capsys, "intention", "train", "--task", "drawer-open-v3", "--target", "reach",
@@ -101,8 +105,10 @@ def test_intention_train_reports_success_reward_quality_and_plots(capsys, tmp_pa
     assert "target success of the intention policy" in text and "preference accuracy" in text
     for name in ("report.json", "reward_quality.png", "training.png", "labels.sqlite", "metrics.csv", "config.json"):
         assert (out / name).exists(), name
-    report = __import__("json").loads((out / "report.json").read_text())
-    assert report["queries_asked"] == 40 and report["labels"] == 40
+    from rat.reports import IntentionReport
+
+    report = IntentionReport.read(out)
+    assert report.queries_asked == 40 and report.labels == 40
 
     code, text, err = run(capsys, "labels", "list", str(out / "labels.sqlite"), "--show", "2")
     assert code == 0 and "40 labels, 40 queries asked in 2 rounds" in text
@@ -127,11 +133,13 @@ def test_intention_bad_inputs(capsys, tmp_path):
                       "unknown target behaviour")
 
 
+@pytest.mark.slow
 def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     from dataclasses import replace
 
     from rat.agents.sac import SACConfig
-    from rat.attacks.presets import rat_config, train_attack
+    from rat.experiments.presets import rat_config
+    from rat.experiments.runner import attack_setup, train_attack
     from rat.preferences.reward_model import RewardModelConfig
 
     cfg = rat_config("cpu", budget=40, steps=900, adversary_hidden=32, adversary_every=100, adversary_batch=64,
@@ -139,9 +147,9 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     cfg = replace(cfg, pebble=replace(cfg.pebble, sac=SACConfig(hidden=32, layers=2, batch_size=32), seed_steps=100,
                                       unsupervised_steps=300, per_round=20, feedback_every=300,
                                       reward=RewardModelConfig(hidden=32, layers=2, max_epochs=3)))
-    report = train_attack("zoo:drawer-open-v3", "reach", cfg, tmp_path / "run", progress=False)
-    assert report["labels"] == 40 and report["adversary_updates"] > 0 and report["weighting_updates"] > 0
-    assert report["max_perturbation"] <= 0.1 + 1e-9
+    report = train_attack("rat", attack_setup("zoo:drawer-open-v3", "reach", progress=False), cfg, tmp_path / "run")
+    assert report.labels == 40 and report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
+    assert report.max_perturbation <= 0.1 + 1e-9
 
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "2", "--json")
     assert code == 0, err
@@ -149,7 +157,7 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     assert result["within_budget"] and result["task"] == "drawer-open-v3" and result["target"] == "reach"
     assert result["clean_target_success_rate"] == 0.0  # the clean victim opens the drawer; it never reaches the goal
 
-    from rat.attacks.presets import film_attack
+    from rat.experiments.runner import film_attack
 
     filmed = film_attack(tmp_path / "run", tmp_path / "attack.mp4", episodes=3, show=2)
     assert len(filmed) == 2 and (tmp_path / "attack.mp4").stat().st_size > 10_000
@@ -165,6 +173,7 @@ def test_attack_bad_inputs(capsys, tmp_path):
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path))[::2], "no checkpoint at")
 
 
+@pytest.mark.slow
 def test_zoo_regeneration_writes_victims_and_timings_and_refuses_weak_ones(capsys, tmp_path):
     dest = tmp_path / "zoo"
     code, out, err = run(capsys, "victim", "zoo", "--task", "drawer-close-v3", "--task", "window-close-v3", "--jobs", "1",
@@ -189,31 +198,89 @@ def test_a_victim_that_does_not_fit_leaves_no_run_behind(capsys, tmp_path):
     model.save(tmp_path / "pendulum.zip")
     from point_env import BESIDE, PointGoal
 
+    from rat.attacks import AttackSetup, ThreatModel
     from rat.attacks.rat import RATConfig, train_rat
     from rat.errors import RatError
     from rat.victims import load_victim
 
     with pytest.raises(RatError, match="does not fit"):
-        train_rat(RATConfig(), load_victim(str(tmp_path / "pendulum.zip")), BESIDE, PointGoal, tmp_path / "run")
+        train_rat(RATConfig(), AttackSetup(load_victim(str(tmp_path / "pendulum.zip")), BESIDE, PointGoal, ThreatModel()),
+                  tmp_path / "run")
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_a_baseline_from_the_cli_then_attack_eval(capsys, tmp_path):
-    code, out, err = run(capsys, "attack", "baseline", "--method", "random", "--target", "opposite",
+    code, out, err = run(capsys, "attack", "train", "--method", "random", "--target", "opposite", "--no-video",
                          "--out", str(tmp_path / "random"))
     assert code == 0 and "random (none) attack success" in out, err
+    code, out, _ = run(capsys, "list", "attacks")
+    assert code == 0 and all(name in out for name in ("rat", "random", "sa-rl", "pa-ad", "mad"))
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "random"), "--episodes", "2", "--json")
     result = __import__("json").loads(out)
     assert code == 0 and result["method"] == "random" and result["task"] == "drawer-close-v3" and result["within_budget"]
 
 
 def test_baseline_and_grid_bad_inputs(capsys, tmp_path):
-    assert_user_error(*run(capsys, "attack", "baseline", "--method", "sa-rl", "--labels", str(tmp_path / "none.sqlite"),
+    assert_user_error(*run(capsys, "attack", "train", "--method", "sa-rl", "--labels", str(tmp_path / "none.sqlite"),
                            "--out", str(tmp_path / "a"))[::2], "no label store at")
-    assert_user_error(*run(capsys, "attack", "baseline", "--method", "random", "--epsilon", "-1",
+    assert_user_error(*run(capsys, "attack", "train", "--method", "random", "--epsilon", "-1",
                            "--out", str(tmp_path / "b"))[::2], "epsilon must be a finite number >= 0")
+    assert_user_error(*run(capsys, "attack", "train", "--method", "fgsm", "--out", str(tmp_path / "e"))[::2],
+                      "unknown attack 'fgsm'", "rat list attacks")
     assert_user_error(*run(capsys, "bench", "table1", "--methods", "rat,fgsm", "--out", str(tmp_path / "c"))[::2],
                       "unknown method 'fgsm'")
     assert_user_error(*run(capsys, "bench", "table1", "--tasks", "drawer-opn-v3", "--out", str(tmp_path / "d"))[::2],
                       "did you mean 'drawer-open-v3'")
-    assert not any((tmp_path / x).exists() for x in "abcd")
+    assert not any((tmp_path / x).exists() for x in "abcde")
+
+
+def test_settings_come_from_the_config_dataclasses():
+    from rat.configs import field_default, field_doc, parse_assignment, with_values
+    from rat.preferences.intention import IntentionConfig
+
+    assert field_default(IntentionConfig, "pebble.sac.batch_size") == IntentionConfig().pebble.sac.batch_size
+    assert field_doc(IntentionConfig, "pebble.budget") == "preference queries in all"
+    assert parse_assignment(IntentionConfig, "pebble.teacher.beta=none") == ("pebble.teacher.beta", None)
+    assert parse_assignment(IntentionConfig, "pebble.oracle=true") == ("pebble.oracle", True)
+    config = with_values(IntentionConfig(), dict([parse_assignment(IntentionConfig, "pebble.budget=5_000")]))
+    assert config.pebble.budget == 5000 and config.pebble.per_round == IntentionConfig().pebble.per_round
+    with pytest.raises(RatError, match="'pebble.budgte' is not a setting of PebbleConfig"):
+        parse_assignment(IntentionConfig, "pebble.budgte=1")
+    with pytest.raises(RatError, match="expected int"):
+        parse_assignment(IntentionConfig, "total_steps=many")
+
+
+def test_every_config_option_shows_its_dataclass_default_and_bad_settings_are_one_line(capsys, tmp_path):
+    from rat.cli import ConfigOption, cli
+
+    def commands(group):
+        for command in group.commands.values():
+            yield from commands(command) if hasattr(command, "commands") else [command]
+
+    options = [p for c in commands(cli) for p in c.params if isinstance(p, ConfigOption)]
+    assert len(options) >= 25
+    for option in options:
+        record = option.get_help_record(click.Context(cli))
+        assert option.help and (option.default is None or option.is_flag or f"[default: {option.default}" in record[1]), record
+    assert_user_error(*run(capsys, "attack", "train", "--method", "random", "--set", "pgd_step=3",
+                           "--out", str(tmp_path / "a"))[::2], "'pgd_step' is not a setting of SimpleConfig")
+    assert_user_error(*run(capsys, "victim", "train", "--task", "drawer-open-v3", "--set", "bc_updates",
+                           "--out", str(tmp_path / "b"))[::2], "is not name=value")
+    assert not any((tmp_path / x).exists() for x in "ab")
+
+
+def test_device_auto_picks_what_torch_sees_and_a_missing_gpu_is_one_line(capsys, tmp_path):
+    import torch
+
+    from rat.device import resolve_device
+
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(RatError, match="unknown device 'tpu'"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        assert_user_error(*run(capsys, "attack", "train", "--method", "random", "--device", "cuda",
+                               "--out", str(tmp_path / "r"))[::2], "does not apply to attack 'random'")
+        assert_user_error(*run(capsys, "victim", "train", "--task", "drawer-close-v3", "--device", "cuda",
+                               "--bc-updates", "1", "--demo-episodes", "1", "--out", str(tmp_path / "v"))[::2],
+                          "torch sees no GPU")

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import torch
 
 from rat.agents.sac import SACConfig
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
@@ -52,6 +51,7 @@ def make(tmp_path, config, name="run"):
     return PebbleLearner(2, 2, config, store, name, rng), Drift(np.random.default_rng(1))
 
 
+@pytest.mark.slow
 def test_budget_is_spent_exactly_and_recorded_round_by_round(tmp_path):
     learner, env = make(tmp_path, tiny_config())
     drive(learner, env, 700)
@@ -80,6 +80,7 @@ def test_pretraining_updates_use_the_intrinsic_reward(tmp_path):
     assert learner.agent.updates == 100 - 60 + 1 and learner.entropy_stats.count > 1  # updates ran, on r_int
 
 
+@pytest.mark.slow
 def test_a_resumed_learner_reuses_stored_labels_and_asks_nothing_twice(tmp_path):
     cfg = tiny_config()
     learner, env = make(tmp_path, cfg)
@@ -103,3 +104,33 @@ def test_an_oracle_learner_stores_the_true_reward_and_asks_nothing(tmp_path):
     assert learner.asked == 0 and learner.store.count("run") == 0 and learner.reward_ready
     np.testing.assert_allclose(learner.buffer.reward[:n], learner.buffer.next_obs[:n, 0] - learner.buffer.obs[:n, 0],
                                atol=1e-6)  # Drift's target reward: x-progress
+
+
+class PrefersRightward:
+    """A labeller that is not the scripted teacher: it judges by where each segment ends, not by a reward."""
+
+    def __init__(self):
+        self.rounds = []
+
+    def label(self, pairs, rng, query):
+        from rat.preferences.labeller import Labels
+
+        self.rounds.append(query.round)
+        y = (pairs.obs1[:, -1, 0] > pairs.obs0[:, -1, 0]).astype(np.float64)
+        return Labels(np.arange(len(y)), y)
+
+    def describe(self):
+        return {"type": "rightward-test"}
+
+
+def test_any_labeller_answers_the_queries_and_is_recorded_with_its_labels(tmp_path):
+    from rat.preferences.labeller import Labeller
+
+    labeller = PrefersRightward()
+    assert isinstance(labeller, Labeller)
+    learner = PebbleLearner(2, 2, tiny_config(budget=30), LabelStore(tmp_path / "labels.sqlite"), "run",
+                            np.random.default_rng(0), labeller=labeller)
+    drive(learner, Drift(np.random.default_rng(1)), 241)
+    stored = learner.store.read("run")
+    assert labeller.rounds == [0] and len(stored.rows) == 30
+    assert all(row["labeller"] == {"type": "rightward-test"} for row in stored.rows)

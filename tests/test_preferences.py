@@ -11,6 +11,7 @@ from rat.preferences.queries import kcenter_greedy, select_queries
 from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, bradley_terry_loss
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory, SegmentPairs
+from rat.preferences.labeller import Labeller, QueryRound
 from rat.preferences.teacher import ScriptedTeacher, TeacherConfig, segment_returns
 
 
@@ -53,8 +54,9 @@ def test_boltzmann_teacher_follows_the_sigmoid_of_the_return_gap():
 
 def test_skip_and_equal_thresholds():
     teacher = ScriptedTeacher(TeacherConfig(skip=0.5, equal=0.1))
-    teacher.set_scale(10.0)  # skip if both returns < 5; equal if |gap| < 1
-    labels = teacher.label(pairs_with_returns([1.0, 6.0, 8.0, 2.0], [2.0, 6.5, 3.0, 9.0]), np.random.default_rng(0))
+    query = QueryRound(round=0, step=0, source="test", segment_return_scale=10.0)  # skip if both < 5; equal if |gap| < 1
+    labels = teacher.label(pairs_with_returns([1.0, 6.0, 8.0, 2.0], [2.0, 6.5, 3.0, 9.0]), np.random.default_rng(0), query)
+    assert isinstance(teacher, Labeller) and teacher.describe()["scale"] == 10.0
     assert labels.index.tolist() == [1, 2, 3]  # pair 0 skipped: both below 5
     assert labels.y.tolist() == [0.5, 0.0, 1.0]
 

@@ -15,7 +15,8 @@ from scipy import stats
 
 from point_env import BESIDE, HORIZON, PointGoal, point_victim
 from rat.agents.sac import SACConfig
-from rat.attacks.rat import RATConfig, evaluate_attack, train_rat
+from rat.attacks import AttackSetup, ThreatModel, evaluate_attack
+from rat.attacks.rat import RATConfig, train_rat
 from rat.attacks.threat import random_delta
 from rat.preferences.pebble import PebbleConfig
 from rat.preferences.reward_model import RewardModelConfig
@@ -32,17 +33,23 @@ def small_config(steps=2000, **kw):
                             reward=RewardModelConfig(hidden=64, layers=2, max_epochs=20, lr=1e-3)))
 
 
+def setup(seed=0):
+    """RAT against the point victim, to bring the goal-side point (BESIDE) about."""
+    return AttackSetup(point_victim(), BESIDE, PointGoal, ThreatModel(0.1), seed=seed, progress=False)
+
+
+@pytest.mark.slow
 def test_rat_beats_a_random_attack_of_the_same_budget(tmp_path):
-    report = train_rat(small_config(), point_victim(), BESIDE, PointGoal, tmp_path / "run", progress=False)
-    assert report["adversary_updates"] > 300 and report["weighting_updates"] > 5 and report["labels"] > 100
+    report = train_rat(small_config(), setup(), tmp_path / "run")
+    assert report.details["adversary_updates"] > 300 and report.details["weighting_updates"] > 5 and report.labels > 100
     rng = np.random.default_rng(0)
-    random = evaluate_attack(point_victim(), lambda o: random_delta(rng, 4, "linf"), PointGoal(7), BESIDE, 0.1, "linf",
+    random = evaluate_attack(point_victim(), lambda o: random_delta(rng, 4, "linf"), PointGoal(7), BESIDE, ThreatModel(0.1),
                              50, seed=2 * 10**7)
-    rat_hits = round(report["attack_success_rate"] * 50)
+    rat_hits = round(report.attack_success_rate * 50)
     rnd_hits = round(random.result.success_rate * 50)
     p = stats.fisher_exact([[rat_hits, 50 - rat_hits], [rnd_hits, 50 - rnd_hits]], alternative="greater").pvalue
     assert rat_hits / 50 >= 0.15 and p < 0.01, f"RAT {rat_hits}/50, random {rnd_hits}/50, p={p:.2g}"
-    assert report["max_perturbation"] <= 0.1 + 1e-9
+    assert report.max_perturbation <= 0.1 + 1e-9
     assert (tmp_path / "run" / "adversary.safetensors").exists() and (tmp_path / "run" / "training.png").exists()
 
 
@@ -53,12 +60,14 @@ torch.set_num_threads(1)
 from point_env import BESIDE, PointGoal, point_victim
 from test_rat_training import small_config
 from rat.attacks.rat import train_rat
-train_rat(small_config(1200), point_victim(), BESIDE, PointGoal, {out!r}, progress=False)
+from test_rat_training import setup
+train_rat(small_config(1200), setup(), {out!r})
 """
 
 
+@pytest.mark.slow
 def test_a_killed_run_resumes_and_reproduces_the_finished_runs_artefacts(tmp_path):
-    whole = train_rat(small_config(1200), point_victim(), BESIDE, PointGoal, tmp_path / "whole", progress=False)
+    whole = train_rat(small_config(1200), setup(), tmp_path / "whole")
 
     out = tmp_path / "killed"
     script = KILLABLE.format(tests=str(Path(__file__).parent), out=str(out))
@@ -70,8 +79,9 @@ def test_a_killed_run_resumes_and_reproduces_the_finished_runs_artefacts(tmp_pat
     proc.wait()
     assert (out / "checkpoint.json").exists() and not (out / "report.json").exists(), "the run was not cut short"
 
-    resumed = train_rat(small_config(1200), point_victim(), BESIDE, PointGoal, out, progress=False)
+    resumed = train_rat(small_config(1200), setup(), out)
     a, b = load_file(tmp_path / "whole" / "adversary.safetensors"), load_file(out / "adversary.safetensors")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-    for key in ("attack_success_rate", "labels", "queries_asked", "adversary_updates", "weighting_updates"):
-        assert resumed[key] == whole[key], key
+    assert (resumed.attack_success_rate, resumed.labels) == (whole.attack_success_rate, whole.labels)
+    for key in ("queries_asked", "adversary_updates", "weighting_updates"):
+        assert resumed.details[key] == whole.details[key], key

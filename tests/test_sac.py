@@ -26,6 +26,7 @@ def run_episodes(policy, env, n):
     return np.array([env.step(policy(env.reset())) for _ in range(n)])
 
 
+@pytest.mark.slow
 def test_sac_learns_a_tiny_task_within_a_bounded_number_of_updates():
     torch.manual_seed(0)
     rng = np.random.default_rng(0)

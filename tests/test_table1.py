@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from rat.errors import RatError
-from rat.table1 import GRID_PRESETS, Cell, cell_progress, grid_cells, markdown_table, run_grid
+from rat.experiments.presets import GRID_PRESETS
+from rat.experiments.table1 import Cell, cell_progress, grid_cells, markdown_table, run_grid
 
 SMOKE = GRID_PRESETS["smoke"]
 
@@ -23,6 +24,7 @@ def random_cells(seeds):
     return grid_cells(["drawer-open-v3"], ["manipulation"], ["random"], seeds)
 
 
+@pytest.mark.slow
 def test_a_grid_resumes_without_rerunning_finished_cells(tmp_path):
     said = []
     first = run_grid(random_cells([0, 1]), SMOKE, tmp_path, jobs=2, echo=said.append, heartbeat=0.2)
@@ -85,6 +87,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_a_two_cell_grid_runs_on_a_local_ray_instance(tmp_path):
     ray = pytest.importorskip("ray")
     ray_bin = Path(sys.executable).parent / "ray"

@@ -76,7 +76,7 @@ def test_user_registered_target_is_found_and_listed():
         with pytest.raises(RatError, match="already registered"):
             register_target("test-lift", success=bool)(lift)
     finally:
-        _REGISTRY.pop("test-lift")
+        _REGISTRY.items.pop("test-lift")
 
 
 def test_unknown_target_names_the_fix():

@@ -2,7 +2,6 @@
 
 from dataclasses import replace
 
-import numpy as np
 import pytest
 import torch
 
@@ -23,35 +22,32 @@ class Interrupt(Exception):
     pass
 
 
+@pytest.mark.slow
 def test_bc_resumes_after_interruption_and_matches_an_uninterrupted_run(tmp_path, monkeypatch):
     whole, _ = train_victim(TINY_BC, tmp_path / "whole", progress=False)
 
-    real = training.behaviour_clone
+    real = training.bc_update
+    calls = {"n": 0}
 
-    def interrupted(*args, **kwargs):
-        on_chunk = args[7]  # behaviour_clone(actor, demos, updates, batch, optimizer, rng, start, on_chunk)
-
-        def stop_after_250(update, loss):
-            if update > 250:  # killed before update 300's checkpoint is written
-                raise Interrupt
-            on_chunk(update, loss)
-
-        args = list(args)
-        args[7] = stop_after_250
+    def update_then_die(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 250:  # killed before update 300's checkpoint is written
+            raise Interrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(training, "behaviour_clone", interrupted)
+    monkeypatch.setattr(training, "bc_update", update_then_die)
     with pytest.raises(Interrupt):
         train_victim(TINY_BC, tmp_path / "resumed", progress=False)
     _, meta = load_checkpoint(tmp_path / "resumed" / "checkpoint")
     assert meta["update"] == 200  # the last checkpoint before the interruption
-    monkeypatch.setattr(training, "behaviour_clone", real)
+    monkeypatch.setattr(training, "bc_update", real)
     resumed, _ = train_victim(TINY_BC, tmp_path / "resumed", progress=False)
 
     obs = torch.randn(32, 39)
     torch.testing.assert_close(load_victim(str(resumed)).act(obs), load_victim(str(whole)).act(obs))
 
 
+@pytest.mark.slow
 def test_sac_resumes_from_its_last_checkpoint(tmp_path, monkeypatch):
     real_update = training.SAC.update
     calls = {"n": 0}
@@ -72,7 +68,7 @@ def test_sac_resumes_from_its_last_checkpoint(tmp_path, monkeypatch):
     monkeypatch.setattr(training.SAC, "update", real_update)
     path, result = train_victim(TINY_SAC, tmp_path / "run", progress=False)
     _, meta = load_checkpoint(tmp_path / "run" / "checkpoint")
-    assert meta["step"] == 500  # the last periodic checkpoint of the finished run
+    assert meta["step"] == 600  # the loop checkpoints the finished run's last step
     assert result.episodes == 1 and path.with_suffix(".safetensors").exists()
     rows = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
     assert any(r.startswith("600,") for r in rows)  # the run reached its last step

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import sys
 from pathlib import Path
@@ -10,11 +11,88 @@ import click
 
 from rat.errors import RatError
 
+# --- options from the configuration dataclasses ---------------------------------------------------------
+
+
+class ConfigOption(click.Option):
+    """An option for one field of a configuration dataclass: its default and help come from the field.
+
+    ``config`` names the dataclass as ``module:Class`` (imported only when the option is used, so
+    ``rat --help`` stays fast); ``path`` is the field, dotted for nested ones (``pebble.budget``).
+    """
+
+    def __init__(self, param_decls, *, config: str, path: str, **kwargs):
+        self.config_ref, self.path = config, path
+        kwargs.setdefault("default", self.config_default)
+        super().__init__(param_decls, show_default=True, **kwargs)
+
+    @property
+    def config_class(self) -> type:
+        module, name = self.config_ref.split(":")
+        return getattr(importlib.import_module(module), name)
+
+    def config_default(self):
+        from rat.configs import field_default
+
+        return field_default(self.config_class, self.path)
+
+    def get_help_record(self, ctx):
+        from rat.configs import field_doc
+
+        self.help = self.help or field_doc(self.config_class, self.path)
+        self.default = self.config_default()  # resolved: help shows the value itself
+        self.show_default = self.default is not None
+        return super().get_help_record(ctx)
+
+
+def config_option(config: str, path: str, *param_decls: str, **kwargs):
+    """``@config_option("rat.victims.training:VictimConfig", "bc_updates", "--bc-updates", type=int)``."""
+    decls = param_decls or ("--" + path.rsplit(".", 1)[-1].replace("_", "-"),)
+    return click.option(*decls, cls=ConfigOption, config=config, path=path, **kwargs)
+
+
+def set_option(what: str):
+    """``--set name=value`` (repeatable): any field of ``what``'s configuration, nested ones by dotted path."""
+    return click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE",
+                        help=f"any setting of {what}, e.g. --set pebble.budget=5000 (repeatable; see its config class)")
+
+
+def config_from_options(ctx: click.Context, config_cls: type, base=None, assignments=()):
+    """``base`` (default: ``config_cls()``) with every :class:`ConfigOption` of the command for ``config_cls``
+    that the user gave on the command line, then every ``--set``, applied."""
+    from click.core import ParameterSource
+
+    from rat.configs import parse_assignment, with_values
+
+    values = {}
+    for param in ctx.command.params:
+        if isinstance(param, ConfigOption) and param.config_class is config_cls \
+                and ctx.get_parameter_source(param.name) is not ParameterSource.DEFAULT:
+            values[param.path] = ctx.params[param.name]
+    values |= dict(parse_assignment(config_cls, a) for a in assignments)
+    return with_values(base if base is not None else config_cls(), values)
+
+
+# --- the command group ------------------------------------------------------------------------------
+
+
+def _load_plugins(ctx, param, value):
+    from rat.plugins import load_plugins
+
+    specs = [s.strip() for v in value for s in v.split(",") if s.strip()]
+    load_plugins(specs)
+    return tuple(specs)
+
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="rat")
-def cli() -> None:
+@click.option("--plugin", "plugins", multiple=True, envvar="RAT_PLUGINS", callback=_load_plugins, expose_value=True,
+              metavar="MODULE", help="import MODULE (or a .py file) first: its registered attacks and targets become "
+              "usable (repeatable; or RAT_PLUGINS=mod1,mod2)")
+@click.pass_context
+def cli(ctx: click.Context, plugins: tuple[str, ...]) -> None:
     """Targeted behaviour attacks on deep RL agents (RAT), and the victims they attack."""
+    ctx.obj = {"plugins": plugins}
 
 
 # --- listings ------------------------------------------------------------------------------------
@@ -22,7 +100,7 @@ def cli() -> None:
 
 @cli.group("list")
 def list_group() -> None:
-    """List tasks, target behaviours and zoo victims."""
+    """List tasks, target behaviours, attacks and zoo victims."""
 
 
 @list_group.command("tasks")
@@ -49,6 +127,16 @@ def list_targets() -> None:
         click.echo(f"{t.name:<10} {t.description}")
 
 
+@list_group.command("attacks")
+def list_attacks() -> None:
+    """Registered attacks: the rewards each can learn from (the first is its default) and its settings class."""
+    from rat.attacks import list_attacks as attacks
+
+    for a in attacks():
+        settings = f" (settings: {a.config.__module__}.{a.config.__name__})" if a.config else ""
+        click.echo(f"{a.name:<8} [{', '.join(a.rewards)}] {a.description}{settings}")
+
+
 # --- victims ---------------------------------------------------------------------------------------
 
 
@@ -57,34 +145,31 @@ def victim() -> None:
     """Train, evaluate and regenerate victims."""
 
 
-def _victim_config(task, method, seed, demo_episodes, bc_updates, total_steps, eval_episodes):
-    from rat.envs import check_task
-    from rat.victims.training import VictimConfig
-
-    check_task(task)
-    return VictimConfig(task=task, method=method, seed=seed, demo_episodes=demo_episodes, bc_updates=bc_updates,
-                        total_steps=total_steps, eval_episodes=eval_episodes)
-
-
+VICTIM = "rat.victims.training:VictimConfig"
 _method_help = "bc: behaviour cloning of the scripted expert (minutes); sac-demo: SAC warm-started with " \
                "demonstrations; sac: SAC from scratch, the paper's way (hours)"
 
 
 @victim.command("train")
 @click.option("--task", required=True, help="Meta-World v3 task, e.g. drawer-open-v3")
-@click.option("--method", type=click.Choice(["bc", "sac-demo", "sac"]), default="bc", show_default=True, help=_method_help)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--demo-episodes", type=int, default=100, show_default=True, help="expert episodes (bc, sac-demo)")
-@click.option("--bc-updates", type=int, default=20_000, show_default=True, help="behaviour-cloning gradient steps")
-@click.option("--total-steps", type=int, default=1_000_000, show_default=True, help="SAC environment steps")
-@click.option("--eval-episodes", type=int, default=50, show_default=True, help="final clean evaluation episodes")
+@config_option(VICTIM, "method", type=click.Choice(["bc", "sac-demo", "sac"]), help=_method_help)
+@config_option(VICTIM, "seed", type=int)
+@config_option(VICTIM, "demo_episodes", type=int)
+@config_option(VICTIM, "bc_updates", type=int)
+@config_option(VICTIM, "total_steps", type=int)
+@config_option(VICTIM, "eval_episodes", type=int)
+@config_option(VICTIM, "device", type=click.Choice(["auto", "cpu", "cuda"]))
+@set_option("the victim (rat.victims.training.VictimConfig)")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/victim-<task>-<method>-<seed>]")
 @click.option("--tensorboard", is_flag=True, help="also log to TensorBoard (needs the 'tensorboard' extra)")
-def victim_train(task, method, seed, demo_episodes, bc_updates, total_steps, eval_episodes, out, tensorboard) -> None:
+@click.pass_context
+def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) -> None:
     """Train a victim. Re-running with the same --out resumes an interrupted run."""
-    from rat.victims.training import train_victim
+    from rat.envs import check_task
+    from rat.victims.training import VictimConfig, train_victim
 
-    config = _victim_config(task, method, seed, demo_episodes, bc_updates, total_steps, eval_episodes)
+    check_task(task)
+    config = config_from_options(ctx, VictimConfig, base=VictimConfig(task=task), assignments=assignments)
     out = out or Path("runs") / f"victim-{task}-{method}-{seed}"
     path, result = train_victim(config, out, progress=True, tensorboard=tensorboard)
     click.echo(f"victim: {path}.safetensors")
@@ -103,19 +188,16 @@ def victim_train(task, method, seed, demo_episodes, bc_updates, total_steps, eva
 @click.option("--json", "as_json", is_flag=True, help="print the result as JSON")
 def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes, as_json) -> None:
     """Evaluate VICTIM (zoo:<task>, an SB3 .zip, or a victim checkpoint) without attack."""
-    from rat.envs import check_task, get_target, make_task
+    from rat.envs import get_target, make_task
     from rat.eval import evaluate
-    from rat.victims import check_compatible, load_victim
+    from rat.experiments.runner import load_victim_for
+    from rat.victims import check_compatible
     from rat.victims.base import numpy_policy
 
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
     behaviour = get_target(target)
-    v = load_victim(victim_spec)
-    task = task or getattr(v, "meta", {}).get("task")
-    if task is None:
-        raise RatError(f"victim '{victim_spec}' does not record its task; pass --task")
-    env_task = check_task(behaviour.env_task(check_task(task)))
+    v, _, env_task = load_victim_for(victim_spec, behaviour, task)
     env = make_task(env_task, seed=seed, render_mode="rgb_array" if video else None)
     check_compatible(v, env, f"task '{env_task}'")
     result = evaluate(numpy_policy(v), env, episodes, seed=seed, target=behaviour, video=video,
@@ -133,10 +215,11 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
 @click.option("--jobs", type=int, default=2, show_default=True, help="parallel processes")
 @click.option("--dest", type=click.Path(path_type=Path), default=None, help="zoo folder [the package's zoo]")
 @click.option("--work-dir", type=click.Path(path_type=Path), default=Path("runs/zoo"), show_default=True)
-@click.option("--demo-episodes", type=int, default=100, show_default=True, help="expert episodes per task")
-@click.option("--bc-updates", type=int, default=20_000, show_default=True, help="behaviour-cloning steps per task")
-@click.option("--eval-episodes", type=int, default=50, show_default=True, help="clean evaluation episodes per task")
-def victim_zoo(tasks, jobs, dest, work_dir, demo_episodes, bc_updates, eval_episodes) -> None:
+@config_option(VICTIM, "demo_episodes", type=int)
+@config_option(VICTIM, "bc_updates", type=int)
+@config_option(VICTIM, "eval_episodes", type=int)
+@click.pass_context
+def victim_zoo(ctx, tasks, jobs, dest, work_dir, **_) -> None:
     """Regenerate the victim zoo (behaviour cloning, default settings) and record the timings."""
     from rat.envs import check_task
     from rat.victims.training import VictimConfig
@@ -151,7 +234,7 @@ def victim_zoo(tasks, jobs, dest, work_dir, demo_episodes, bc_updates, eval_epis
         click.echo(f"{row['task']:<18} {row['minutes']:5.1f} min  clean success {row['clean_success']:.0%} "
                    f"over {row['episodes']} episodes")
 
-    config = VictimConfig(method="bc", demo_episodes=demo_episodes, bc_updates=bc_updates, eval_episodes=eval_episodes)
+    config = config_from_options(ctx, VictimConfig, base=VictimConfig(method="bc"))
     regenerate_zoo(config, list(tasks) or None, work_dir, dest or ZOO_DIR, jobs, on_done=report)
 
 
@@ -163,52 +246,46 @@ def intention() -> None:
     """Learn a target behaviour from preference labels (PEBBLE), without a victim."""
 
 
+INTENTION = "rat.preferences.intention:IntentionConfig"
+
+
 @intention.command("train")
-@click.option("--task", default="drawer-open-v3", show_default=True, help="the victim's task (sets the environment)")
-@click.option("--target", default="reach", show_default=True, help="target behaviour: reach, opposite, or a registered one")
-@click.option("--budget", type=int, default=3000, show_default=True, help="preference queries in all")
-@click.option("--steps", type=int, default=100_000, show_default=True, help="environment steps")
-@click.option("--per-round", type=int, default=128, show_default=True, help="queries per round")
-@click.option("--every", type=int, default=5000, show_default=True, help="steps between query rounds")
-@click.option("--strategy", default="disagreement", show_default=True,
-              help="query strategy: uniform, disagreement, entropy, kcenter, kcenter-disagreement, kcenter-entropy")
-@click.option("--seed-steps", type=int, default=1000, show_default=True, help="uniform random steps first")
-@click.option("--pretrain-steps", type=int, default=9000, show_default=True,
-              help="state-entropy pre-training steps; the first query round follows")
-@click.option("--batch-size", type=int, default=1024, show_default=True, help="SAC batch size")
-@click.option("--reward-epochs", type=int, default=200, show_default=True, help="reward-model epochs per round, at most")
-@click.option("--eval-every", type=int, default=10_000, show_default=True, help="steps between evaluations")
-@click.option("--oracle", is_flag=True, help="learn from the true target reward, no labels (an upper bound)")
-@click.option("--teacher-mistake", type=float, default=0.0, show_default=True, help="scripted teacher's mistake rate")
-@click.option("--teacher-beta", type=float, default=None, help="Boltzmann rationality (default: perfectly rational)")
-@click.option("--seed", type=int, default=0, show_default=True)
+@config_option(INTENTION, "task")
+@config_option(INTENTION, "target", help="target behaviour: reach, opposite, or a registered one")
+@config_option(INTENTION, "pebble.budget", type=int)
+@config_option(INTENTION, "total_steps", "--steps", type=int)
+@config_option(INTENTION, "pebble.per_round", type=int)
+@config_option(INTENTION, "pebble.feedback_every", "--every", type=int)
+@config_option(INTENTION, "pebble.strategy", help="query strategy of later rounds: uniform, disagreement, entropy, "
+               "kcenter, kcenter-disagreement, kcenter-entropy")
+@config_option(INTENTION, "pebble.seed_steps", type=int)
+@config_option(INTENTION, "pebble.unsupervised_steps", "--pretrain-steps", type=int,
+               help="state-entropy pre-training steps; the first query round follows")
+@config_option(INTENTION, "pebble.sac.batch_size", type=int, help="SAC batch size")
+@config_option(INTENTION, "pebble.reward.max_epochs", "--reward-epochs", type=int)
+@config_option(INTENTION, "eval_every", type=int)
+@config_option(INTENTION, "pebble.oracle", is_flag=True)
+@config_option(INTENTION, "pebble.teacher.mistake", "--teacher-mistake", type=float)
+@config_option(INTENTION, "pebble.teacher.beta", "--teacher-beta", type=float)
+@config_option(INTENTION, "seed", type=int)
+@config_option(INTENTION, "device", type=click.Choice(["auto", "cpu", "cuda"]))
+@set_option("the run (rat.preferences.intention.IntentionConfig)")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/intention-...]")
 @click.option("--tensorboard", is_flag=True, help="also log to TensorBoard")
-def intention_train(task, target, budget, steps, per_round, every, strategy, seed_steps, pretrain_steps, batch_size,
-                    reward_epochs, eval_every, oracle, teacher_mistake, teacher_beta, seed, out, tensorboard) -> None:
+@click.pass_context
+def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignments, **_) -> None:
     """Train an intention policy for TARGET from scripted preference labels; resumes with the same --out."""
-    from dataclasses import replace
-
     from rat.preferences.intention import IntentionConfig, train_intention
-    from rat.preferences.pebble import PebbleConfig
-    from rat.preferences.reward_model import RewardModelConfig
-    from rat.preferences.teacher import TeacherConfig
 
-    base = PebbleConfig()
-    pebble = PebbleConfig(sac=replace(base.sac, batch_size=batch_size), budget=budget, per_round=per_round,
-                          feedback_every=every, strategy=strategy, seed_steps=seed_steps,
-                          unsupervised_steps=pretrain_steps, oracle=oracle, reward=RewardModelConfig(max_epochs=reward_epochs),
-                          teacher=TeacherConfig(beta=teacher_beta, mistake=teacher_mistake))
-    config = IntentionConfig(task=task, target=target, seed=seed, total_steps=steps, pebble=pebble,
-                             eval_every=eval_every)
+    config = config_from_options(ctx, IntentionConfig, assignments=assignments)
     out = out or Path("runs") / f"intention-{task}-{target}-{budget}-{seed}"
     report = train_intention(config, out, progress=True, tensorboard=tensorboard)
-    lo, hi = report["target_success_ci"]
-    click.echo(f"target success of the intention policy: {100 * report['target_success_rate']:.1f}% "
-               f"(95% CI {100 * lo:.1f}-{100 * hi:.1f}%, {report['final_eval_episodes']} episodes)")
-    click.echo(f"learned reward: preference accuracy {100 * report['preference_accuracy']:.1f}% on "
-               f"{report['held_out_pairs']} held-out pairs; Pearson r with the true reward {report['reward_pearson']:.2f}")
-    click.echo(f"labels: {report['labels']} of {report['queries_asked']} queries asked; run: {out} "
+    lo, hi = report.target_success_ci
+    click.echo(f"target success of the intention policy: {100 * report.target_success_rate:.1f}% "
+               f"(95% CI {100 * lo:.1f}-{100 * hi:.1f}%, {report.final_eval_episodes} episodes)")
+    click.echo(f"learned reward: preference accuracy {100 * report.preference_accuracy:.1f}% on "
+               f"{report.held_out_pairs} held-out pairs; Pearson r with the true reward {report.reward_pearson:.2f}")
+    click.echo(f"labels: {report.labels} of {report.queries_asked} queries asked; run: {out} "
                "(report.json, reward_quality.png, training.png, labels.sqlite)")
 
 
@@ -272,76 +349,75 @@ def attack() -> None:
     """Train and evaluate targeted behaviour attacks: RAT and its baselines."""
 
 
+THREAT = "rat.attacks.threat:ThreatModel"
+PEBBLE = "rat.preferences.pebble:PebbleConfig"
+
+
 @attack.command("train")
+@click.option("--method", default="rat", show_default=True, help="a registered attack (`rat list attacks`)")
 @click.option("--victim", "victim_spec", default="zoo:drawer-open-v3", show_default=True,
               help="zoo:<task>, a Stable-Baselines3 .zip, or a victim checkpoint")
+@click.option("--task", default=None, help="the victim's own task, for a victim that does not record one")
 @click.option("--target", default="reach", show_default=True,
               help="reach (manipulation scenario), opposite (opposite behaviour), or a registered target")
-@click.option("--epsilon", type=float, default=0.1, show_default=True, help="budget, raw observation units")
-@click.option("--norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]), default="linf", show_default=True)
-@click.option("--budget", type=int, default=3000, show_default=True, help="preference labels (queries) in all")
+@click.option("--reward", type=click.Choice(["labels", "oracle", "none"]), default=None,
+              help="learn from preference labels, the true target reward (oracle), or nothing [the attack's first]")
+@click.option("--labels", "labels_path", type=click.Path(path_type=Path), default=None,
+              help="a label store to learn r̂ from (SA-RL, PA-AD with --reward labels; e.g. a RAT run's labels.sqlite)")
+@config_option(THREAT, "epsilon", type=float, help="budget, raw observation units")
+@config_option(THREAT, "norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]))
+@config_option(PEBBLE, "budget", type=int, help="preference labels (queries) in all (RAT)")
 @click.option("--preset", type=click.Choice(["cpu", "paper"]), default="cpu", show_default=True,
               help="cpu: 5e4 steps, batches of 256 (this machine); paper: 1e6 steps, batch 1024 (a GPU)")
 @click.option("--steps", type=int, default=None, help="environment steps [the preset's]")
-@click.option("--ablation", type=click.Choice(["none", "no-weighting", "no-combined", "no-intention"]), default="none",
-              show_default=True, help="the paper's table 4 (see the README)")
-@click.option("--kl-form", type=click.Choice(["exact", "released"]), default="exact", show_default=True)
-@click.option("--hypergradient", type=click.Choice(["exact", "batch-mean"]), default="exact", show_default=True)
+@click.option("--ablation", type=click.Choice(["none", "no-weighting", "no-combined", "no-intention"]), default=None,
+              help="RAT: the paper's table 4 (see the README)")
+@click.option("--kl-form", type=click.Choice(["exact", "released"]), default=None, help="RAT's KL [exact]")
+@click.option("--hypergradient", type=click.Choice(["exact", "batch-mean"]), default=None,
+              help="RAT's hypergradient [exact]")
+@click.option("--actor-steps", type=int, default=None, help="PA-AD actor: 1 = FGSM [1], more = PGD")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="where to train [the attack's]")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/attack-...]")
+@set_option("the attack's configuration (`rat list attacks` names its class)")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/<method>-...]")
 @click.option("--video/--no-video", default=True, show_default=True,
               help="film two of ten attacked episodes, those reaching the target first")
 @click.option("--tensorboard", is_flag=True)
-def attack_train(victim_spec, target, epsilon, norm, budget, preset, steps, ablation, kl_form, hypergradient, seed, out,
-                 video, tensorboard) -> None:
-    """Train a RAT adversary; re-running with the same --out resumes an interrupted run."""
-    from rat.attacks.presets import film_attack, rat_config, train_attack
+def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, preset, steps, ablation,
+                 kl_form, hypergradient, actor_steps, device, seed, assignments, out, video, tensorboard) -> None:
+    """Train an attack (RAT by default) and evaluate it; re-running with the same --out resumes it."""
+    from rat.attacks import ThreatModel, check_reward, get_attack
+    from rat.configs import parse_assignment, with_values
+    from rat.experiments.runner import attack_config, attack_setup, film_attack, train_attack
 
-    config = rat_config(preset, budget, steps, target, epsilon=epsilon, norm=norm, seed=seed, ablation=ablation,
-                        kl_form=kl_form, hypergradient=hypergradient)
-    out = out or Path("runs") / f"attack-{victim_spec.replace(':', '-').replace('/', '_')}-{target}-{seed}"
-    report = train_attack(victim_spec, target, config, out, progress=True, tensorboard=tensorboard)
-    lo, hi = report["attack_success_ci"]
-    click.echo(f"attack success: {100 * report['attack_success_rate']:.1f}% (95% CI {100 * lo:.1f}-{100 * hi:.1f}%, "
-               f"{report['episodes']} episodes), {report['labels']} labels, {report['steps']} steps; "
-               f"max perturbation {report['max_perturbation']:.4f} <= epsilon {epsilon:g} ({norm})")
+    attack = get_attack(method)
+    reward = check_reward(attack, reward or attack.rewards[0])
+    given = {"ablation": ablation, "kl_form": kl_form, "hypergradient": hypergradient, "actor_steps": actor_steps,
+             "device": device}
+    fields = set(getattr(attack.config, "__dataclass_fields__", {}))
+    overrides = {k: v for k, v in given.items() if v is not None}
+    unknown = sorted(k for k in overrides if k not in fields)
+    if unknown:
+        raise RatError(f"--{unknown[0].replace('_', '-')} does not apply to attack '{method}'; drop it")
+    overrides |= {k: v for k, v in {"epsilon": epsilon, "norm": norm, "seed": seed}.items() if k in fields}
+    threat = ThreatModel(epsilon, norm)
+    setup = attack_setup(victim_spec, target, threat, seed, reward, labels_path, task, tensorboard=tensorboard)
+    config = attack_config(method, preset, budget, steps, target, **overrides)
+    if assignments:
+        if config is None:
+            raise RatError(f"attack '{method}' has no settings; drop --set")
+        config = with_values(config, dict(parse_assignment(type(config), a) for a in assignments))
+    name = victim_spec.replace(":", "-").replace("/", "_")
+    out = out or Path("runs") / f"{method}{'' if reward == attack.rewards[0] else '-' + reward}-{name}-{target}-{seed}"
+    report = train_attack(method, setup, config, out)
+    click.echo(f"{method} ({reward}) {report.summary()}")
     if video:
         filmed = film_attack(out, out / "attack.mp4", seed=seed)
         click.echo(f"video of two of ten attacked episodes, those reaching the target first: {out / 'attack.mp4'} "
                    f"({sum(filmed)}/{len(filmed)} filmed reach the target)")
-    click.echo(f"plot of success over training: {out / 'training.png'}; report: {out / 'report.json'}")
-
-
-@attack.command("baseline")
-@click.option("--method", type=click.Choice(["random", "sa-rl", "pa-ad", "mad"]), required=True,
-              help="random, SA-RL (PPO in the state-adversarial MDP), PA-AD (PPO director + gradient actor), MAD")
-@click.option("--victim", "victim_spec", default="zoo:drawer-open-v3", show_default=True,
-              help="zoo:<task>, a Stable-Baselines3 .zip, or a victim checkpoint")
-@click.option("--target", default="reach", show_default=True, help="reach, opposite, or a registered target")
-@click.option("--epsilon", type=float, default=0.1, show_default=True, help="budget, raw observation units")
-@click.option("--norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]), default="linf", show_default=True)
-@click.option("--labels", "labels_path", type=click.Path(path_type=Path), default=None,
-              help="SA-RL/PA-AD learn r̂ from exactly these labels (e.g. a RAT run's labels.sqlite); "
-                   "without it they use the true target reward (the oracle variants)")
-@click.option("--preset", type=click.Choice(["cpu", "paper"]), default="cpu", show_default=True,
-              help="PPO budget: cpu 5e4 steps; paper 1e6 steps at table 6's settings")
-@click.option("--steps", type=int, default=None, help="environment steps [the preset's]")
-@click.option("--actor-steps", type=int, default=1, show_default=True, help="PA-AD actor: 1 = FGSM, more = PGD")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/<method>-...]")
-def attack_baseline(method, victim_spec, target, epsilon, norm, labels_path, preset, steps, actor_steps, seed, out):
-    """Train (SA-RL, PA-AD) or set up (random, MAD) a baseline attack and evaluate it over 30 episodes."""
-    from rat.attacks.baselines import ppo_preset
-    from rat.attacks.presets import train_baseline_attack
-
-    variant = "" if method not in ("sa-rl", "pa-ad") else ("-oracle" if labels_path is None else "-labels")
-    out = out or Path("runs") / f"{method}{variant}-{victim_spec.replace(':', '-').replace('/', '_')}-{target}-{seed}"
-    report = train_baseline_attack(method, victim_spec, target, out, epsilon, norm, seed,
-                                   ppo_preset(preset, steps, actor_steps=actor_steps), labels_path)
-    lo, hi = report["attack_success_ci"]
-    click.echo(f"{method} ({report['variant']}) attack success: {100 * report['attack_success_rate']:.1f}% "
-               f"(95% CI {100 * lo:.1f}-{100 * hi:.1f}%, {report['episodes']} episodes); max perturbation "
-               f"{report['max_perturbation']:.4f} <= epsilon {epsilon:g} ({norm}); report: {out / 'report.json'}")
+    if (out / "training.png").exists():
+        click.echo(f"plot of success over training: {out / 'training.png'}")
+    click.echo(f"report: {out / 'report.json'}")
 
 
 @attack.command("eval")
@@ -352,7 +428,7 @@ def attack_baseline(method, victim_spec, target, epsilon, norm, labels_path, pre
 @click.option("--json", "as_json", is_flag=True)
 def attack_eval(run, episodes, seed, video, as_json) -> None:
     """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
-    from rat.attacks.presets import evaluate_saved_attack
+    from rat.experiments.runner import evaluate_saved_attack
 
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
@@ -390,13 +466,16 @@ def _csv(kind):
 @click.option("--jobs", type=int, default=2, show_default=True, help="parallel local processes")
 @click.option("--ray-address", default=None, help="run the cells as Ray tasks on this cluster ('auto', 'ray://host:10001')")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table1"), show_default=True)
-def bench_table1(tasks, scenarios, methods, seeds, preset, jobs, ray_address, out) -> None:
+@click.pass_context
+def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, jobs, ray_address, out) -> None:
     """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
-    from rat.table1 import GRID_PRESETS, grid_cells, run_grid
+    from rat.experiments.presets import GRID_PRESETS
+    from rat.experiments.table1 import grid_cells, run_grid
 
     cells = grid_cells(tasks, scenarios, methods, seeds)
     click.echo(f"{len(cells)} cells, preset '{preset}', {'Ray at ' + ray_address if ray_address else f'{jobs} processes'}")
-    result = run_grid(cells, GRID_PRESETS[preset], out, jobs, ray_address, echo=click.echo)
+    result = run_grid(cells, GRID_PRESETS[preset], out, jobs, ray_address, echo=click.echo,
+                      plugins=ctx.obj["plugins"])
     click.echo(f"ran {len(result['ran'])}, skipped {len(result['skipped'])} finished, failed {len(result['failed'])}; "
                f"{out / 'table1.md'}, {out / 'results.csv'}")
     for row in result["failed"]:

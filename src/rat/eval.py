@@ -76,12 +76,12 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
             ``render_mode="rgb_array"``), one frame every ``video_every`` steps.
         stop_at_success: end an episode at its first success (faster; returns are then partial).
     """
-    success_fn = target.success if target is not None else (lambda info: bool(info["success"]))
     filmed = set(range(video_episodes)) if isinstance(video_episodes, int) else set(video_episodes)
     returns, successes, first, last = [], [], [], []
     frames: list[np.ndarray] = []
     for ep in tqdm(range(episodes), desc="evaluating", disable=not progress, leave=False):
         obs, info = env.reset(seed=seed + ep)
+        success_fn = target.episode_success() if target is not None else (lambda info: bool(info["success"]))
         total, first_step, t, done = 0.0, -1, 0, False
         ok_now = False
         while not done:

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -19,7 +20,7 @@ def _pyplot():
 
 def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path: Path, title: str) -> Path:
     """Standardised learned vs true reward along one rollout."""
-    plt = _pyplot()
+    plt = pyplot()
 
     def z(x):
         return (x - x.mean()) / (x.std() + 1e-8)
@@ -38,7 +39,7 @@ def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path:
 
 def plot_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
     """Evaluation success over environment steps, from a run's metrics.csv."""
-    plt = _pyplot()
+    plt = pyplot()
     with open(metrics_csv, newline="") as f:
         rows = [r for r in csv.DictReader(f) if r.get("eval_success_rate")]
     if not rows:

@@ -97,6 +97,47 @@ class MetricsLogger:
                 w.writerows(rows)
 
 
+def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
+    """``{"pebble": {"budget": 3}}`` as ``{"pebble.budget": 3}``."""
+    if not isinstance(config, dict):
+        return {prefix: config}
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        flat |= _flatten(value, f"{prefix}.{key}" if prefix else str(key))
+    return flat
+
+
+def config_differences(saved: dict[str, Any], now: dict[str, Any], defaults: dict[str, Any] | None = None
+                       ) -> list[str]:
+    """The settings in which a run directory's configuration and this one differ, as ``name = run vs now``.
+
+    ``device`` never counts (a run may resume on another machine). A setting the run did not record
+    (it was written by an older version) counts only if it is set now to other than its default.
+    """
+    saved, now = _flatten(saved), _flatten(now)
+    defaults = _flatten(defaults) if defaults is not None else {}
+    differences = []
+    for key in sorted(set(saved) | set(now)):
+        if key.rsplit(".", 1)[-1] == "device":
+            continue
+        if key not in saved and key in defaults and now.get(key) == defaults[key]:
+            continue
+        if saved.get(key, "<not recorded>") != now.get(key, "<not set>"):
+            differences.append(f"{key} = {json.dumps(saved.get(key, '<not recorded>'))} in the run, "
+                               f"{json.dumps(now.get(key, '<not set>'))} now")
+    return differences
+
+
+def _defaults(config: Any) -> Any:
+    """The default settings of the dataclasses in ``config`` (itself one, or a dict holding some)."""
+    if isinstance(config, dict):
+        return {k: d for k, v in config.items() if (d := _defaults(v)) is not None}
+    try:
+        return to_jsonable(type(config)()) if is_dataclass(config) else None
+    except Exception:  # noqa: BLE001 - a configuration without defaults for every field
+        return None
+
+
 class Run:
     """A run directory. ``Run(dir, config)`` starts it or, if it already holds the same config, resumes it."""
 
@@ -107,10 +148,10 @@ class Run:
         config_path = self.dir / "config.json"
         if config_path.exists():
             saved = json.loads(config_path.read_text())
-            if saved != self.config:
-                diff = sorted(k for k in set(saved) | set(self.config) if saved.get(k) != self.config.get(k))
+            differences = config_differences(saved, self.config, _defaults(config))
+            if differences:
                 raise RatError(f"run directory '{self.dir}' holds a different configuration (differs in: "
-                               f"{', '.join(diff)}); pick a new --out directory or repeat the original options")
+                               f"{'; '.join(differences)}); pick a new --out directory or repeat the original options")
         else:
             config_path.write_text(json.dumps(self.config, indent=1))
         self.logger = MetricsLogger(self.dir, tensorboard)

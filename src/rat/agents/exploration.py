@@ -53,5 +53,5 @@ class RunningMeanStd:
 def state_entropy_reward(obs: torch.Tensor, pool: torch.Tensor, stats: RunningMeanStd, k: int = 5) -> torch.Tensor:
     """PEBBLE's intrinsic reward: k-NN distance, normalised by its running std (``stats`` is updated)."""
     distance = knn_distance(obs, pool, k)
-    stats.update(distance.numpy())
+    stats.update(distance.cpu().numpy())
     return distance / max(stats.std, 1e-8)

@@ -1,7 +1,7 @@
 """Soft Actor-Critic, compact: losses are pure functions, the update step owns the optimisers.
 
 Defaults are the paper's table 7 (the SAC used for victims); the intention policy overrides
-the learning rate (``algorithm.md`` §2).
+the learning rate (``docs/design.md`` §4).
 """
 
 from __future__ import annotations

@@ -1,27 +1,33 @@
-"""Attacks: the threat model, RAT, and (later) its baselines."""
+"""Attacks: the threat model, the attack registry, RAT and its baselines, and their evaluation."""
 
-from rat.attacks.rat import (
-    ABLATIONS,
-    AttackEval,
-    CombinedBehaviourPolicy,
-    RATConfig,
-    evaluate_attack,
-    load_adversary,
-    train_rat,
+from rat.attacks.base import (
+    REWARDS,
+    Attack,
+    AttackSetup,
+    check_reward,
+    get_attack,
+    list_attacks,
+    load_attack,
+    register_attack,
 )
-from rat.attacks.threat import NORMS, AttackedObservation, perturb, project, random_delta
+from rat.attacks.evaluation import AttackEval, evaluate_attack
+from rat.attacks.threat import NORMS, AttackedObservation, Perturbation, ThreatModel, project, random_delta
 
 __all__ = [
-    "ABLATIONS",
     "NORMS",
+    "REWARDS",
+    "Attack",
     "AttackEval",
+    "AttackSetup",
     "AttackedObservation",
-    "CombinedBehaviourPolicy",
-    "RATConfig",
+    "Perturbation",
+    "ThreatModel",
+    "check_reward",
     "evaluate_attack",
-    "load_adversary",
-    "perturb",
+    "get_attack",
+    "list_attacks",
+    "load_attack",
     "project",
     "random_delta",
-    "train_rat",
+    "register_attack",
 ]

@@ -1,6 +1,6 @@
 """Gradient attacks through the victim: the PA-AD actor and MAD.
 
-Both search the ε-ball of the threat model (:func:`rat.attacks.threat.perturb`) for the
+Both search the ε-ball of the threat model (:class:`rat.attacks.threat.ThreatModel`) for the
 observation that changes the victim's deterministic action the most in a given sense:
 
 - :func:`directed_perturbation` (PA-AD's "actor", Sun et al. 2022): maximise
@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from rat.attacks.threat import perturb, project, random_delta
+from rat.attacks.threat import ThreatModel, project, random_delta
 from rat.victims.base import Victim
 
 Objective = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (μ(s̃), μ(s)) -> per-state value [B]
@@ -36,8 +36,7 @@ def _ascent_direction(grad: torch.Tensor, norm: str) -> torch.Tensor:
     return torch.zeros_like(grad).scatter(-1, index, grad.gather(-1, index).sign())
 
 
-def search_ball(victim: Victim, obs: torch.Tensor, objective: Objective, epsilon: float, norm: str = "linf",
-                steps: int = 1, step_size: float | None = None, generator: np.random.Generator | None = None,
+def search_ball(victim: Victim, obs: torch.Tensor, objective: Objective, threat: ThreatModel, steps: int = 1, step_size: float | None = None, generator: np.random.Generator | None = None,
                 context=None) -> torch.Tensor:
     """Δ in the unit ball (so s̃ = s + ε·Δ) that ascends ``objective`` from a random start.
 
@@ -50,6 +49,7 @@ def search_ball(victim: Victim, obs: torch.Tensor, objective: Objective, epsilon
     """
     rng = generator if generator is not None else np.random.default_rng()
     obs = obs.float()
+    norm = threat.norm
     start = np.stack([random_delta(rng, obs.shape[-1], norm) for _ in range(obs.shape[0])])
     delta = torch.as_tensor(start, dtype=obs.dtype)
     size = step_size if step_size is not None else (1.0 if steps == 1 else 2.5 / steps)
@@ -57,7 +57,7 @@ def search_ball(victim: Victim, obs: torch.Tensor, objective: Objective, epsilon
         clean = victim.act(obs, context)
     for _ in range(steps):
         delta.requires_grad_(True)
-        value = objective(victim.act(perturb(obs, delta, epsilon, norm), context), clean).sum()
+        value = objective(victim.act(threat.perturb(obs, delta), context), clean).sum()
         (grad,) = torch.autograd.grad(value, delta)
         with torch.no_grad():
             delta = project(delta + size * _ascent_direction(grad, norm), norm)
@@ -80,15 +80,15 @@ def mad_objective(attacked: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
     return (attacked - clean).pow(2).sum(-1)
 
 
-def directed_perturbation(victim: Victim, obs: torch.Tensor, direction: torch.Tensor, epsilon: float,
-                          norm: str = "linf", lam: float = 1.0, steps: int = 1,
+def directed_perturbation(victim: Victim, obs: torch.Tensor, direction: torch.Tensor, threat: ThreatModel,
+                          lam: float = 1.0, steps: int = 1,
                           generator: np.random.Generator | None = None, context=None) -> torch.Tensor:
     """PA-AD's actor: Δ that moves the victim's action along ``direction`` (see module docstring)."""
-    return search_ball(victim, obs, directed_objective(direction, lam), epsilon, norm, steps,
+    return search_ball(victim, obs, directed_objective(direction, lam), threat, steps,
                        generator=generator, context=context)
 
 
-def mad_perturbation(victim: Victim, obs: torch.Tensor, epsilon: float, norm: str = "linf", steps: int = 10,
+def mad_perturbation(victim: Victim, obs: torch.Tensor, threat: ThreatModel, steps: int = 10,
                      generator: np.random.Generator | None = None, context=None) -> torch.Tensor:
     """MAD: Δ that changes the victim's action the most (PGD, 10 steps by default)."""
-    return search_ball(victim, obs, mad_objective, epsilon, norm, steps, generator=generator, context=context)
+    return search_ball(victim, obs, mad_objective, threat, steps, generator=generator, context=context)

@@ -14,13 +14,15 @@ Gaussian N(tanh μ_θ(s), σ_θ(s)² I): its mean action with its (pre-squash) s
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 from torch.func import functional_call
 
 from rat.agents.networks import TanhGaussianActor, TwinCritic, mlp
-from rat.attacks.threat import perturb
+from rat.attacks.threat import ThreatModel
+from rat.victims.base import Victim
 
 
 class Adversary(nn.Module):
@@ -69,19 +71,54 @@ def intention_gaussian(intention: TanhGaussianActor, obs: torch.Tensor) -> tuple
     return torch.tanh(mu), log_std
 
 
-def perturbed_action(adversary: Adversary, params: dict | None, victim, obs: torch.Tensor, noise, epsilon: float,
-                     norm: str) -> torch.Tensor:
-    """μ_ν(s + ε·P(Δ_α(s))), differentiable in the adversary's parameters (``params`` overrides them)."""
-    delta = adversary(obs, noise) if params is None else functional_call(adversary, params, (obs, noise))
-    return victim.act(perturb(obs, delta, epsilon, norm))
+@dataclass(frozen=True)
+class Imitation:
+    """What the adversary is trained against: the frozen victim, the intention policy π_θ with its
+    critic Q_φ and temperature μ, and the budget.
 
+    Every method takes the adversary and, optionally, ``params`` that override its parameters
+    (the virtual step of the hypergradient differentiates through them).
 
-def kl_per_state(adversary, params, victim, intention, obs, noise, epsilon, norm, victim_std: float = 1.0,
-                 form: str = "exact") -> torch.Tensor:
-    """KL(π_{ν∘α}(·|s) ‖ π_θ(·|s)) for each state of the batch, ``[B]``."""
-    target_mean, target_log_std = intention_gaussian(intention, obs)
-    action = perturbed_action(adversary, params, victim, obs, noise, epsilon, norm)
-    return gaussian_kl(action, victim_std, target_mean, target_log_std, form)
+    Attributes:
+        victim: the frozen victim; gradients flow through it to the observation only.
+        intention: π_θ's actor; critic, temperature: its Q_φ and μ.
+        threat: the budget.
+        victim_std: σ_v of the perturbed policy N(μ_ν(s̃), σ_v² I).
+        kl_form: ``"exact"`` Gaussian KL or ``"released"`` (see :func:`gaussian_kl`).
+    """
+
+    victim: Victim
+    intention: TanhGaussianActor
+    critic: TwinCritic
+    temperature: torch.Tensor
+    threat: ThreatModel
+    victim_std: float = 1.0
+    kl_form: str = "exact"
+
+    def perturbed_action(self, adversary: Adversary, params: dict | None, obs: torch.Tensor,
+                         noise: torch.Tensor | None) -> torch.Tensor:
+        """μ_ν(s + ε·P(Δ_α(s))), differentiable in the adversary's parameters."""
+        delta = adversary(obs, noise) if params is None else functional_call(adversary, params, (obs, noise))
+        return self.victim.act(self.threat.perturb(obs, delta))
+
+    def kl(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None
+           ) -> torch.Tensor:
+        """KL(π_{ν∘α}(·|s) ‖ π_θ(·|s)) for each state of the batch, ``[B]``."""
+        target_mean, target_log_std = intention_gaussian(self.intention, obs)
+        action = self.perturbed_action(adversary, params, obs, noise)
+        return gaussian_kl(action, self.victim_std, target_mean, target_log_std, self.kl_form)
+
+    def outer(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None
+              ) -> torch.Tensor:
+        """J(α) = mean_s[μ log π_{ν∘α}(a|s) − min Q_φ(s, a)], a = μ_ν(s̃).
+
+        At a = the perturbed policy's mean, log π is the constant −(|A|/2) log(2π σ_v²); it is kept
+        so the value is the paper's J, though only −Q carries a gradient.
+        """
+        action = self.perturbed_action(adversary, params, obs, noise)
+        log_prob = -0.5 * action.shape[-1] * math.log(2 * math.pi * self.victim_std**2)
+        q1, q2 = self.critic(obs, action)
+        return (self.temperature.detach() * log_prob - torch.min(q1, q2)).mean()
 
 
 def inner_loss(weights: torch.Tensor, kl: torch.Tensor) -> torch.Tensor:
@@ -89,22 +126,8 @@ def inner_loss(weights: torch.Tensor, kl: torch.Tensor) -> torch.Tensor:
     return (weights * kl).mean()
 
 
-def outer_loss(adversary, params, victim, critic: TwinCritic, temperature: torch.Tensor, obs, noise, epsilon, norm,
-               victim_std: float = 1.0) -> torch.Tensor:
-    """J(α) = mean_s[μ log π_{ν∘α}(a|s) − min Q_φ(s, a)], a = μ_ν(s̃).
-
-    At a = the perturbed policy's mean, log π is the constant −(|A|/2) log(2π σ_v²); it is kept
-    so the value is the paper's J, though only −Q carries a gradient.
-    """
-    action = perturbed_action(adversary, params, victim, obs, noise, epsilon, norm)
-    log_prob = -0.5 * action.shape[-1] * math.log(2 * math.pi * victim_std**2)
-    q1, q2 = critic(obs, action)
-    return (temperature.detach() * log_prob - torch.min(q1, q2)).mean()
-
-
-def hypergradient(adversary: Adversary, weighting: WeightingNetwork, victim, intention: TanhGaussianActor,
-                  critic: TwinCritic, temperature: torch.Tensor, obs_inner, noise_inner, obs_outer, noise_outer,
-                  epsilon: float, norm: str, inner_lr: float, victim_std: float = 1.0, kl_form: str = "exact",
+def hypergradient(objective: Imitation, adversary: Adversary, weighting: WeightingNetwork, obs_inner: torch.Tensor,
+                  noise_inner: torch.Tensor, obs_outer: torch.Tensor, noise_outer: torch.Tensor, inner_lr: float,
                   form: str = "exact") -> list[torch.Tensor]:
     """∇_ω J(α'(ω)), α'(ω) = α − η ∇_α L(α; ω), one gradient per weighting-network parameter.
 
@@ -114,12 +137,12 @@ def hypergradient(adversary: Adversary, weighting: WeightingNetwork, victim, int
     """
     a_params = {k: v.detach().requires_grad_(True) for k, v in adversary.named_parameters()}
     w_params = dict(weighting.named_parameters())
-    kl = kl_per_state(adversary, a_params, victim, intention, obs_inner, noise_inner, epsilon, norm, victim_std, kl_form)
+    kl = objective.kl(adversary, a_params, obs_inner, noise_inner)
     if form == "exact":
         weights = functional_call(weighting, w_params, (obs_inner,))
         grads = torch.autograd.grad(inner_loss(weights, kl), list(a_params.values()), create_graph=True)
         virtual = {k: p - inner_lr * g for (k, p), g in zip(a_params.items(), grads)}
-        j = outer_loss(adversary, virtual, victim, critic, temperature, obs_outer, noise_outer, epsilon, norm, victim_std)
+        j = objective.outer(adversary, virtual, obs_outer, noise_outer)
         return list(torch.autograd.grad(j, list(w_params.values()), allow_unused=True))
     if form != "batch-mean":
         raise ValueError(f"unknown hypergradient form '{form}'")
@@ -127,7 +150,7 @@ def hypergradient(adversary: Adversary, weighting: WeightingNetwork, victim, int
         weights = weighting(obs_inner)
     grads = torch.autograd.grad(inner_loss(weights, kl), list(a_params.values()), retain_graph=True)
     virtual = {k: (p - inner_lr * g).detach().requires_grad_(True) for (k, p), g in zip(a_params.items(), grads)}
-    j = outer_loss(adversary, virtual, victim, critic, temperature, obs_outer, noise_outer, epsilon, norm, victim_std)
+    j = objective.outer(adversary, virtual, obs_outer, noise_outer)
     g_outer = torch.autograd.grad(j, list(virtual.values()))
     g_kl = torch.autograd.grad(kl.mean(), list(a_params.values()))
     f_bar = -inner_lr * sum((a * b).sum() for a, b in zip(g_outer, g_kl))

@@ -18,36 +18,36 @@ Ablations (the paper's table 4), by ``RATConfig.ablation``:
 
 from __future__ import annotations
 
-import json
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import gymnasium as gym
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
-from rat.attacks.losses import Adversary, WeightingNetwork, hypergradient, inner_loss, kl_per_state, outer_loss
-from rat.attacks.threat import AttackedObservation, check_budget, perturb, perturbation_norm
+from rat import seeds
+from rat.attacks.base import AttackSetup, register_attack
+from rat.attacks.evaluation import AttackEval, evaluate_attack
+from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss
+from rat.attacks.threat import Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
-from rat.envs.targets import TargetBehaviour
+from rat.device import resolve_device
 from rat.errors import RatError
-from rat.eval import EvalResult, evaluate
-from rat.agents.sac import SAC
+from rat.loop import TrainingLoop, write_report
 from rat.plots import plot_training
+from rat.preferences.labeller import Labeller
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.store import LabelStore
+from rat.reports import AttackReport
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_jsonable
-from rat.victims.base import Victim, check_compatible, numpy_policy
+from rat.victims.base import Victim, check_compatible
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
 
 
 @dataclass(frozen=True)
 class RATConfig:
-    """A RAT attack (defaults: the paper's, with ``algorithm.md``'s released schedule)."""
+    """A RAT attack (defaults: the paper's, with the released schedule of ``docs/design.md`` §5)."""
 
     epsilon: float = 0.1  #: budget, raw observation units
     norm: str = "linf"  #: linf, l2, l1 or l1-rescale
@@ -71,9 +71,10 @@ class RATConfig:
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
     select: str = "last"  #: "last" adversary (the paper's), or the snapshot whose attack scores best under r̂ ("reward")
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
+    device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
-        check_budget(self.epsilon, self.norm)
+        self.threat  # validates epsilon and norm
         if self.ablation not in ABLATIONS:
             raise RatError(f"unknown ablation '{self.ablation}'; use one of: {', '.join(ABLATIONS)}")
         if self.select not in ("last", "reward"):
@@ -86,6 +87,10 @@ class RATConfig:
                      "horizon", "eval_every", "eval_episodes", "final_eval_episodes", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+
+    @property
+    def threat(self) -> ThreatModel:
+        return ThreatModel(self.epsilon, self.norm)
 
 
 class CombinedBehaviourPolicy:
@@ -106,64 +111,32 @@ class CombinedBehaviourPolicy:
         return episode_step < self.switch
 
 
-@dataclass
-class AttackEval:
-    """An attack's evaluation: the target success of the attacked victim, and perturbation sizes."""
-
-    result: EvalResult
-    norm: str
-    epsilon: float
-    max_perturbation: float
-    mean_perturbation: float
-    steps: int
-
-    @property
-    def within_budget(self) -> bool:
-        return self.max_perturbation <= self.epsilon * (1 + 1e-6) + 1e-12
-
-    def summary(self) -> str:
-        return (f"{self.result.summary()}; perturbation {self.norm} mean {self.mean_perturbation:.4f}, "
-                f"max {self.max_perturbation:.4f} <= epsilon {self.epsilon:g} ({self.norm}, raw observation units)")
-
-
-def evaluate_attack(victim: Victim, adversary: Callable[[np.ndarray], np.ndarray], env: gym.Env,
-                    target: TargetBehaviour, epsilon: float, norm: str, episodes: int, seed: int,
-                    video: str | Path | None = None, progress: bool = False, video_episodes=2) -> AttackEval:
-    """Run the victim on attacked observations; success is the *target*'s test, at any step."""
-    attacked = AttackedObservation(env, adversary, epsilon, norm)
-    result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress,
-                      video_episodes=video_episodes)
-    norms = np.asarray(attacked.norms)
-    return AttackEval(result, norm, epsilon, float(norms.max()), float(norms.mean()), len(norms))
-
-
-def adversary_function(adversary: Adversary) -> Callable[[np.ndarray], np.ndarray]:
+def adversary_function(adversary: Adversary) -> Perturbation:
     """The trained adversary's deterministic Δ for one observation (numpy)."""
+    device = next(adversary.parameters()).device
 
     @torch.no_grad()
     def delta(obs: np.ndarray) -> np.ndarray:
-        return adversary(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).double().numpy()
+        s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
+        return adversary(s).squeeze(0).double().cpu().numpy()
 
     return delta
 
 
 def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, weighting: WeightingNetwork | None,
-                     victim: Victim, intention: SAC, obs: torch.Tensor, cfg: RATConfig) -> dict[str, float]:
+                     objective: Imitation, obs: torch.Tensor, ablation: str = "none") -> dict[str, float]:
     """One inner-level step: only the adversary's parameters receive a gradient and change.
 
     Minimises the weighted KL to the intention policy (weights 1 without a weighting network),
     or, for the ``no-intention`` ablation, the outer loss itself.
     """
     noise = torch.randn_like(obs)
-    if cfg.ablation == "no-intention":
-        loss = outer_loss(adversary, None, victim, intention.critic, intention.alpha, obs, noise, cfg.epsilon,
-                          cfg.norm, cfg.victim_std)
+    if ablation == "no-intention":
+        loss = objective.outer(adversary, None, obs, noise)
     else:
         with torch.no_grad():
-            weights = weighting(obs) if weighting is not None else torch.ones(len(obs))
-        kl = kl_per_state(adversary, None, victim, intention.actor, obs, noise, cfg.epsilon, cfg.norm, cfg.victim_std,
-                          cfg.kl_form)
-        loss = inner_loss(weights, kl)
+            weights = weighting(obs) if weighting is not None else torch.ones(len(obs), device=obs.device)
+        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise))
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=list(adversary.parameters()))  # nothing else may accumulate a gradient
     optimizer.step()
@@ -171,12 +144,11 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
 
 
 def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimizer, adversary: Adversary,
-                     victim: Victim, intention: SAC, obs_inner: torch.Tensor, obs_outer: torch.Tensor,
-                     cfg: RATConfig) -> dict[str, float]:
+                     objective: Imitation, obs_inner: torch.Tensor, obs_outer: torch.Tensor, inner_lr: float,
+                     form: str = "exact") -> dict[str, float]:
     """One outer-level step: the hypergradient moves the weighting network, and nothing else."""
-    grads = hypergradient(adversary, weighting, victim, intention.actor, intention.critic, intention.alpha, obs_inner,
-                          torch.randn_like(obs_inner), obs_outer, torch.randn_like(obs_outer), cfg.epsilon, cfg.norm,
-                          cfg.adversary_lr, cfg.victim_std, cfg.kl_form, cfg.hypergradient)
+    grads = hypergradient(objective, adversary, weighting, obs_inner, torch.randn_like(obs_inner), obs_outer,
+                          torch.randn_like(obs_outer), inner_lr, form)
     optimizer.zero_grad(set_to_none=True)
     for p, g in zip(weighting.parameters(), grads):
         p.grad = None if g is None else g.detach()
@@ -186,152 +158,193 @@ def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimiz
     return {"weight_mean": w.mean().item(), "weight_std": w.std().item()}
 
 
-def train_rat(config: RATConfig, victim: Victim, target: TargetBehaviour, make_env: Callable[[int], gym.Env],
-              out: str | Path, describe: dict | None = None, progress: bool = True, tensorboard: bool = False) -> dict:
-    """Train a RAT adversary against a frozen ``victim`` for ``target`` (resumable from ``out``).
+class RATTrainer:
+    """The whole state of a RAT run, one environment step at a time (a :class:`~rat.loop.Trainer`).
+
+    Owns the intention policy and its learner (PEBBLE), the adversary, the weighting network,
+    their optimisers, the combined behaviour policy and the run's random generator, so a
+    profiler or a robust-training loop can step it and look inside.
 
     Args:
-        make_env: ``seed -> environment`` of the target behaviour (the true state is never perturbed).
-        describe: JSON-able facts saved with the run and the adversary (victim spec, task, ...).
+        config: the attack's settings.
+        setup: victim, target, environments, threat model, labeller.
+        env: the training environment (made by ``setup.make_env(config.seed)``).
+        store: where labels go; source: this run's name in it.
+        snapshots: the folder of the adversary snapshots taken at every evaluation.
+        labeller: who answers preference queries (default: the scripted teacher of ``config.pebble``).
+    """
+
+    kind = "rat-run"
+
+    def __init__(self, config: RATConfig, setup: AttackSetup, env: gym.Env, store: LabelStore, source: str,
+                 snapshots: Path, labeller: Labeller | None = None):
+        cfg = self.config = config
+        self.snapshots = Path(snapshots)
+        self.setup, self.env, self.target = setup, env, setup.target
+        self.device = resolve_device(cfg.device)
+        self.victim = setup.victim.to(self.device) if isinstance(setup.victim, torch.nn.Module) else setup.victim
+        self.rng = seed_everything(cfg.seed)
+        obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+        self.learner = PebbleLearner(obs_dim, act_dim, cfg.pebble, store, source=source, rng=self.rng,
+                                     labeller=labeller, task=setup.describe.get("task"), target=self.target.name,
+                                     device=self.device)
+        self.adversary = Adversary(obs_dim, cfg.adversary_hidden).to(self.device)
+        self.weighting = WeightingNetwork(obs_dim).to(self.device)
+        self.adversary_opt = torch.optim.Adam(self.adversary.parameters(), lr=cfg.adversary_lr)
+        self.weighting_opt = torch.optim.Adam(self.weighting.parameters(), lr=cfg.weighting_lr)
+        mode = {"no-combined": "intention", "no-intention": "victim"}.get(cfg.ablation, "combined")
+        self.behaviour = CombinedBehaviourPolicy(cfg.horizon, mode)
+        self.use_weighting = cfg.ablation == "none"
+        self.counters = {"adversary_updates": 0, "weighting_updates": 0}
+        self.finished = False
+        self.obs: np.ndarray | None = None  # None between episodes
+
+    @property
+    def step(self) -> int:
+        return self.learner.step
+
+    def objective(self) -> Imitation:
+        """What the adversary imitates now (the critic is replaced when PEBBLE resets it)."""
+        agent, cfg = self.learner.agent, self.config
+        return Imitation(self.victim, agent.actor, agent.critic, agent.alpha, cfg.threat, cfg.victim_std, cfg.kl_form)
+
+    # --- one environment step (the paper's Algorithm 1) -------------------------------------------
+
+    def victim_action(self, obs: np.ndarray) -> np.ndarray:
+        """The perturbed victim's action; the adversary explores (samples Δ) while collecting."""
+        with torch.no_grad():
+            s = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+            delta = self.adversary(s, torch.randn_like(s))
+            return self.victim.act(self.config.threat.perturb(s, delta)).squeeze(0).cpu().numpy()
+
+    def advance(self) -> dict[str, float] | None:
+        cfg, learner = self.config, self.learner
+        if self.obs is None:  # a new episode
+            self.obs, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
+            self.behaviour.start_episode(self.rng)
+            self.t, self.succeeded, self.metrics = 0, False, {}
+            self.success_test = self.target.episode_success()
+        obs = self.obs
+        action = self.victim_action(obs) if self.behaviour.victim_acts(self.t) else learner.act(obs)
+        next_obs, _, terminated, truncated, info = self.env.step(action)
+        r_target = self.target.reward(obs, action, next_obs, info)
+        self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated))  # labels, r̂, π_θ
+        if learner.reward_ready and learner.step % cfg.adversary_every == 0:
+            for _ in range(cfg.adversary_updates):
+                self.metrics.update(self.adversary_step())  # inner level
+        if self.use_weighting and learner.reward_ready and learner.step % cfg.weighting_every == 0:
+            self.metrics.update(self.weighting_step())  # outer level
+        self.succeeded |= self.success_test(info)
+        self.obs, self.t = next_obs, self.t + 1
+        if terminated or truncated:
+            self.obs = None
+            return {"behaviour_success": float(self.succeeded), "switch_step": self.behaviour.switch, **self.metrics}
+        return None
+
+    def sample_obs(self) -> torch.Tensor:
+        return self.learner.buffer.sample(self.config.adversary_batch, self.rng, self.device)["obs"]
+
+    def adversary_step(self) -> dict[str, float]:
+        obs = self.sample_obs()
+        self.counters["adversary_updates"] += 1
+        return adversary_update(self.adversary, self.adversary_opt, self.weighting if self.use_weighting else None,
+                                self.objective(), obs, self.config.ablation)
+
+    def weighting_step(self) -> dict[str, float]:
+        obs_inner, obs_outer = self.sample_obs(), self.sample_obs()
+        self.counters["weighting_updates"] += 1
+        return weighting_update(self.weighting, self.weighting_opt, self.adversary, self.objective(), obs_inner,
+                                obs_outer, self.config.adversary_lr, self.config.hypergradient)
+
+    # --- evaluation and state ----------------------------------------------------------------------
+
+    def evaluate_attack(self, episodes: int, seed: int, video=None) -> AttackEval:
+        cfg = self.config
+        return evaluate_attack(self.victim, adversary_function(self.adversary),
+                               self.setup.make_env(cfg.seed + seeds.EVAL_ENV), self.target, cfg.threat, episodes, seed,
+                               video=video)
+
+    def evaluate(self) -> dict[str, float]:
+        """The attack now, and a snapshot of the adversary (for selection by r̂)."""
+        res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
+        save_checkpoint(self.snapshots / f"adversary-{self.step}", "adversary-snapshot",
+                        {"adversary": self.adversary.state_dict()}, {"step": self.step})
+        return {"eval_success_rate": res.result.success_rate, **self.counters}
+
+    def state_dict(self) -> dict:
+        return {"learner": self.learner.state_dict(), "adversary": self.adversary.state_dict(),
+                "weighting": self.weighting.state_dict(), "adversary_opt": self.adversary_opt.state_dict(),
+                "weighting_opt": self.weighting_opt.state_dict(), "rng": rng_state(self.rng),
+                "counters": dict(self.counters)}
+
+    def load_state_dict(self, state: dict, meta: dict) -> None:
+        self.learner.load_state_dict(state["learner"])
+        self.adversary.load_state_dict(state["adversary"])
+        self.weighting.load_state_dict(state["weighting"])
+        self.adversary_opt.load_state_dict(state["adversary_opt"])
+        self.weighting_opt.load_state_dict(state["weighting_opt"])
+        restore_rng_state(self.rng, state["rng"])
+        self.counters.update({k: int(state["counters"][k]) for k in self.counters})
+
+    def checkpoint_meta(self) -> dict:
+        return {}
+
+
+def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboard: bool = False) -> AttackReport:
+    """Train a RAT adversary against ``setup.victim`` for ``setup.target`` (resumable from ``out``).
 
     Returns the report (also in ``out/report.json``); the adversary is ``out/adversary.*``.
     """
-    cfg = config
-    env = make_env(cfg.seed)  # checked before the run directory exists, so a mistake leaves nothing behind
-    check_compatible(victim, env, f"task '{describe['task']}'" if describe and "task" in describe else "the environment")
-    run = Run(out, {"rat": to_jsonable(cfg), **(describe or {})}, tensorboard)
-    rng = seed_everything(cfg.seed)
-    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    cfg, target = config, setup.target
+    env = setup.make_env(cfg.seed)  # checked before the run directory exists, so a mistake leaves nothing behind
+    task = setup.describe.get("task")
+    check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
+    run = Run(out, {"rat": to_jsonable(cfg), **setup.describe}, tensorboard)
     store = LabelStore(run.dir / "labels.sqlite")
-    learner = PebbleLearner(obs_dim, act_dim, cfg.pebble, store, source=run.dir.name, rng=rng,
-                            task=(describe or {}).get("task"), target=target.name)
-    adversary = Adversary(obs_dim, cfg.adversary_hidden)
-    weighting = WeightingNetwork(obs_dim)
-    adv_opt = torch.optim.Adam(adversary.parameters(), lr=cfg.adversary_lr)
-    w_opt = torch.optim.Adam(weighting.parameters(), lr=cfg.weighting_lr)
-    mode = {"no-combined": "intention", "no-intention": "victim"}.get(cfg.ablation, "combined")
-    behaviour = CombinedBehaviourPolicy(cfg.horizon, mode)
-    use_weighting = cfg.ablation == "none"
-    counters = {"adversary_updates": 0, "weighting_updates": 0, "next_checkpoint": cfg.checkpoint_every}
-
-    def save(path: Path) -> None:
-        save_checkpoint(path, "rat-run", {
-            "learner": learner.state_dict(), "adversary": adversary.state_dict(), "weighting": weighting.state_dict(),
-            "adversary_opt": adv_opt.state_dict(), "weighting_opt": w_opt.state_dict(), "rng": rng_state(rng),
-            "counters": counters}, {"step": learner.step})
-
-    if run.has_checkpoint():
-        state, _ = load_checkpoint(run.checkpoint_path, "rat-run")
-        learner.load_state_dict(state["learner"])
-        adversary.load_state_dict(state["adversary"])
-        weighting.load_state_dict(state["weighting"])
-        adv_opt.load_state_dict(state["adversary_opt"])
-        w_opt.load_state_dict(state["weighting_opt"])
-        restore_rng_state(rng, state["rng"])
-        counters.update({k: int(v) for k, v in state["counters"].items()})
-        run.logger.truncate_after(learner.step)
-
-    def victim_action(obs: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
-            delta = adversary(s, torch.randn_like(s))  # the adversary explores while collecting
-            return victim.act(perturb(s, delta, cfg.epsilon, cfg.norm)).squeeze(0).numpy()
-
-    def adversary_step() -> dict[str, float]:
-        obs = learner.buffer.sample(cfg.adversary_batch, rng)["obs"]
-        counters["adversary_updates"] += 1
-        return adversary_update(adversary, adv_opt, weighting if use_weighting else None, victim, learner.agent, obs, cfg)
-
-    def weighting_step() -> dict[str, float]:
-        obs_inner = learner.buffer.sample(cfg.adversary_batch, rng)["obs"]
-        obs_outer = learner.buffer.sample(cfg.adversary_batch, rng)["obs"]
-        counters["weighting_updates"] += 1
-        return weighting_update(weighting, w_opt, adversary, victim, learner.agent, obs_inner, obs_outer, cfg)
-
-    def evaluate_now(episodes: int, seed: int, video=None) -> AttackEval:
-        return evaluate_attack(victim, adversary_function(adversary), make_env(cfg.seed + 7), target, cfg.epsilon,
-                               cfg.norm, episodes, seed, video=video)
-
-    # --- the loop (the paper's Algorithm 1) ------------------------------------------------------------
-    started = time.perf_counter()
-    bar = tqdm(total=cfg.total_steps, initial=learner.step, desc=f"RAT {target.name}", disable=not progress)
-    obs, _ = env.reset(seed=int(rng.integers(2**31)))
-    behaviour.start_episode(rng)
-    t, ep_success, metrics = 0, False, {}
-    while learner.step < cfg.total_steps:
-        action = victim_action(obs) if behaviour.victim_acts(t) else learner.act(obs)
-        next_obs, _, terminated, truncated, info = env.step(action)
-        r_target = target.reward(obs, action, next_obs, info)
-        metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated))  # labels, r̂, π_θ
-        if learner.reward_ready and learner.step % cfg.adversary_every == 0:
-            for _ in range(cfg.adversary_updates):
-                metrics.update(adversary_step())  # inner level
-        if use_weighting and learner.reward_ready and learner.step % cfg.weighting_every == 0:
-            metrics.update(weighting_step())  # outer level
-        ep_success |= target.success(info)
-        obs, t = next_obs, t + 1
-        bar.update(1)
-        if learner.step % cfg.eval_every == 0:
-            res = evaluate_now(cfg.eval_episodes, seed=10**7 + learner.step)
-            save_checkpoint(run.dir / "snapshots" / f"adversary-{learner.step}", "adversary-snapshot",
-                            {"adversary": adversary.state_dict()}, {"step": learner.step})
-            run.logger.log(learner.step, {"eval_success_rate": res.result.success_rate, **counters})
-            bar.set_postfix(attack_success=f"{res.result.success_rate:.0%}", labels=learner.asked)
-        if terminated or truncated:
-            run.logger.log(learner.step, {"behaviour_success": float(ep_success), "switch_step": behaviour.switch,
-                                          **metrics})
-            if learner.step >= counters["next_checkpoint"]:
-                counters["next_checkpoint"] += cfg.checkpoint_every
-                save(run.checkpoint_path)
-            obs, _ = env.reset(seed=int(rng.integers(2**31)))
-            behaviour.start_episode(rng)
-            t, ep_success, metrics = 0, False, {}
-    bar.close()
-    train_seconds = time.perf_counter() - started
+    trainer = RATTrainer(cfg, setup, env, store, run.dir.name, run.dir / "snapshots", setup.labeller)
+    loop = TrainingLoop(run, trainer, cfg.total_steps, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every,
+                        checkpoint_at_boundary=True, desc=f"RAT {target.name}", progress=setup.progress)
+    loop.resume()
+    train_seconds = loop.run()
 
     # --- results -------------------------------------------------------------------------------------
-    meta = {"rat": to_jsonable(cfg), **(describe or {}), "target": target.name, "obs_dim": obs_dim,
-            "adversary_hidden": cfg.adversary_hidden}
-    selection: dict = {}
+    adversary = trainer.adversary
+    meta = {"rat": to_jsonable(cfg), **setup.describe, "target": target.name, "obs_dim": adversary.obs_dim,
+            "adversary_hidden": cfg.adversary_hidden, "method": "rat"}
+    details: dict = {"ablation": cfg.ablation, "queries_asked": trainer.learner.asked, **trainer.counters}
     if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
         save_checkpoint(run.dir / "adversary-last", "adversary", {"adversary": adversary.state_dict()}, meta)
-        last = evaluate_now(cfg.final_eval_episodes, seed=2 * 10**7)
-        selection = select_by_learned_reward(run.dir / "snapshots", adversary, victim, learner.ensemble,
-                                             make_env(cfg.seed + 11), cfg)
-        selection["last_attack_success_rate"] = last.result.success_rate
-    final = evaluate_now(cfg.final_eval_episodes, seed=2 * 10**7)
+        last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL)
+        details.update(select_by_learned_reward(trainer.snapshots, adversary, trainer.victim, trainer.learner.ensemble,
+                                                setup.make_env(cfg.seed + seeds.SELECTION_ENV), cfg))
+        details["last_attack_success_rate"] = last.result.success_rate
+    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL)
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict()},
-                    meta | {"selected_step": selection.get("selected_step", learner.step)})
+                    meta | {"selected_step": details.get("selected_step", trainer.step)})
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
-    report = {
-        **(describe or {}), "target": target.name, "epsilon": cfg.epsilon, "norm": cfg.norm,
-        "ablation": cfg.ablation, "steps": learner.step, "labels": store.count(learner.source),
-        "queries_asked": learner.asked, "attack_success_rate": final.result.success_rate,
-        "attack_success_ci": list(final.result.success_ci), "episodes": final.result.episodes,
-        "max_perturbation": final.max_perturbation, "mean_perturbation": final.mean_perturbation,
-        "adversary_updates": counters["adversary_updates"], "weighting_updates": counters["weighting_updates"],
-        "train_minutes_this_session": round(train_seconds / 60, 2), **selection,
-    }
-    (run.dir / "report.json").write_text(json.dumps(report, indent=1))
+    report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
+                          labels=store.count(trainer.learner.source), minutes=train_seconds / 60, details=details)
+    write_report(run.dir, report)
     store.close()
     return report
 
 
 @torch.no_grad()
-def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, cfg: RATConfig, episodes: int,
+def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, threat: ThreatModel, episodes: int,
                    seed: int) -> float:
     """Mean return under r̂ of the attacked victim's episodes: how well the attack does, by the attacker's model."""
     delta = adversary_function(adversary)
+    device = next(adversary.parameters()).device
     returns = []
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         total, done = 0.0, False
         while not done:
-            s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
-            d = torch.as_tensor(delta(obs), dtype=torch.float32).unsqueeze(0)
-            action = victim.act(perturb(s, d, cfg.epsilon, cfg.norm)).squeeze(0).numpy()
+            s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
+            d = torch.as_tensor(delta(obs), dtype=torch.float32, device=device).unsqueeze(0)
+            action = victim.act(threat.perturb(s, d)).squeeze(0).cpu().numpy()
             total += float(ensemble.r_hat(obs.astype(np.float32), action))
             obs, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
@@ -351,7 +364,7 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
     scores = {}
     for name, state in candidates.items():
         adversary.load_state_dict(state)
-        scores[name] = learned_return(victim, adversary, env, ensemble, cfg, cfg.eval_episodes, seed=3 * 10**7)
+        scores[name] = learned_return(victim, adversary, env, ensemble, cfg.threat, cfg.eval_episodes, seeds.SELECTION)
     order = [n for n in candidates if n != "last"] + ["last"]  # later wins ties
     best = max(reversed(order), key=lambda n: scores[n])
     adversary.load_state_dict(candidates[best])
@@ -369,3 +382,17 @@ def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
     adversary.load_state_dict(state["adversary"])
     adversary.eval().requires_grad_(False)
     return adversary, meta
+
+
+@register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))
+class RAT:
+    """RAT: the adversary imitates an intention policy learned from preference labels (the paper's method)."""
+
+    def train(self, setup: AttackSetup, config: RATConfig, out: Path) -> AttackReport:
+        oracle = setup.reward == "oracle"  # the setup decides threat, reward source and seed; the config follows
+        config = replace(config, seed=setup.seed, epsilon=setup.threat.epsilon, norm=setup.threat.norm,
+                         pebble=replace(config.pebble, oracle=oracle))
+        return train_rat(config, setup, out, setup.tensorboard)
+
+    def load(self, run: Path, meta: dict, victim: Victim) -> Perturbation:
+        return adversary_function(load_adversary(run)[0])

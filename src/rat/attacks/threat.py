@@ -1,5 +1,8 @@
 """The threat model, in one place: s̃ = s + ε·P(Δ), used in training, data collection and evaluation.
 
+:class:`ThreatModel` is the budget (ε and its norm) as one value; :class:`AttackedObservation` shows
+any gymnasium agent the attacked observation.
+
 The adversary emits Δ ∈ (−1, 1)^d; P projects it onto the unit ball of the chosen norm, so
 ‖s̃ − s‖ ≤ ε always holds in that norm. ε is in raw observation units (for Meta-World, metres
 and gripper units of the 39-d observation), and is reported with its norm.
@@ -11,6 +14,7 @@ released code applied at deployment; reachable only by name).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import gymnasium as gym
@@ -20,13 +24,6 @@ import torch
 from rat.errors import RatError
 
 NORMS = ("linf", "l2", "l1", "l1-rescale")
-
-
-def check_budget(epsilon: float, norm: str) -> None:
-    if norm not in NORMS:
-        raise RatError(f"unknown norm '{norm}'; use one of: {', '.join(NORMS)}")
-    if not np.isfinite(epsilon) or epsilon < 0:
-        raise RatError(f"the budget epsilon must be a finite number >= 0, got {epsilon}")
 
 
 def _project_l1(delta: torch.Tensor) -> torch.Tensor:
@@ -57,11 +54,6 @@ def project(delta: torch.Tensor, norm: str = "linf") -> torch.Tensor:
     raise RatError(f"unknown norm '{norm}'; use one of: {', '.join(NORMS)}")
 
 
-def perturb(obs: torch.Tensor, delta: torch.Tensor, epsilon: float, norm: str = "linf") -> torch.Tensor:
-    """The attacked observation s̃ = s + ε·P(Δ) (differentiable in Δ)."""
-    return obs + epsilon * project(delta, norm)
-
-
 def perturbation_norm(diff: np.ndarray, norm: str) -> np.ndarray:
     """‖diff‖ in ``norm`` over the last axis (``l1-rescale`` is measured in ℓ1)."""
     order = {"linf": np.inf, "l2": 2, "l1": 1, "l1-rescale": 1}[norm]
@@ -78,33 +70,78 @@ def random_delta(rng: np.random.Generator, dim: int, norm: str) -> np.ndarray:
     return direction * rng.uniform() ** (1.0 / dim)  # radius for a uniform density in the ball
 
 
-Adversary = Callable[[np.ndarray], np.ndarray]  # true observation -> Δ (before projection)
+Perturbation = Callable[[np.ndarray], np.ndarray]  # true observation -> Δ (before projection)
+
+
+@dataclass(frozen=True)
+class ThreatModel:
+    """The attacker's budget: every attacked observation lies within ``epsilon`` of the true one in ``norm``.
+
+    One value for every function that needs a budget, so training, data collection and
+    evaluation cannot disagree on it.
+
+    Attributes:
+        epsilon: radius of the ball, in raw observation units (Meta-World: the 39-d observation).
+        norm: ``linf`` (the paper's), ``l2``, ``l1`` or ``l1-rescale`` (see the module docstring).
+    """
+
+    epsilon: float = 0.1  #: radius of the ball, raw observation units
+    norm: str = "linf"  #: linf (the paper's), l2, l1 or l1-rescale
+
+    def __post_init__(self):
+        if self.norm not in NORMS:
+            raise RatError(f"unknown norm '{self.norm}'; use one of: {', '.join(NORMS)}")
+        if not np.isfinite(self.epsilon) or self.epsilon < 0:
+            raise RatError(f"the budget epsilon must be a finite number >= 0, got {self.epsilon}")
+        object.__setattr__(self, "epsilon", float(self.epsilon))
+
+    def project(self, delta: torch.Tensor) -> torch.Tensor:
+        """Each row of ``delta [..., d]`` projected onto the unit ball of the norm."""
+        return project(delta, self.norm)
+
+    def perturb(self, obs: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        """The attacked observation s̃ = s + ε·P(Δ) (differentiable in Δ)."""
+        return obs + self.epsilon * project(delta, self.norm)
+
+    def size(self, diff: np.ndarray) -> np.ndarray:
+        """‖diff‖ in the norm over the last axis (``l1-rescale`` is measured in ℓ1)."""
+        return perturbation_norm(np.asarray(diff), self.norm)
+
+    def contains(self, obs: np.ndarray, attacked: np.ndarray, tolerance: float = 1e-6) -> bool:
+        """Whether every attacked observation lies in the ball around its true one."""
+        return bool(np.all(self.size(np.asarray(attacked) - np.asarray(obs)) <= self.epsilon * (1 + tolerance) + 1e-12))
+
+    def random_delta(self, rng: np.random.Generator, dim: int) -> np.ndarray:
+        """A uniformly random point of the unit ball (the random attack's Δ)."""
+        return random_delta(rng, dim, self.norm)
+
+    def __str__(self) -> str:
+        return f"epsilon {self.epsilon:g} ({self.norm}, raw observation units)"
 
 
 class AttackedObservation(gym.ObservationWrapper):
     """Show the agent s̃ = s + ε·P(Δ(s)) while the environment's true state is untouched.
 
     ``info["true_obs"]`` carries the unperturbed observation, ``info["perturbation_norm"]`` the
-    size of this step's perturbation in ``norm``; :attr:`norms` collects every one.
+    size of this step's perturbation; :attr:`norms` collects every one.
 
     Args:
         env: any gymnasium environment with a ``Box`` observation space.
-        adversary: maps a true observation to Δ (numpy); projected here.
-        epsilon, norm: the budget.
+        perturbation: maps a true observation to Δ (numpy); projected here.
+        threat: the budget.
     """
 
-    def __init__(self, env: gym.Env, adversary: Adversary, epsilon: float, norm: str = "linf"):
+    def __init__(self, env: gym.Env, perturbation: Perturbation, threat: ThreatModel):
         super().__init__(env)
-        check_budget(epsilon, norm)
-        self.adversary, self.epsilon, self.norm = adversary, float(epsilon), norm
+        self.perturbation, self.threat = perturbation, threat
         self.norms: list[float] = []
         self._last_true: np.ndarray | None = None
 
     def observation(self, obs: np.ndarray) -> np.ndarray:
         self._last_true = np.asarray(obs)
-        delta = torch.as_tensor(self.adversary(obs), dtype=torch.float64)
-        attacked = perturb(torch.as_tensor(obs, dtype=torch.float64), delta, self.epsilon, self.norm).numpy()
-        self.norms.append(float(perturbation_norm(attacked - obs, self.norm)))
+        delta = torch.as_tensor(self.perturbation(obs), dtype=torch.float64)
+        attacked = self.threat.perturb(torch.as_tensor(obs, dtype=torch.float64), delta).numpy()
+        self.norms.append(float(self.threat.size(attacked - obs)))
         return attacked.astype(np.asarray(obs).dtype)
 
     def reset(self, **kwargs):

@@ -10,7 +10,21 @@ Both functions read one transition and the environment's ``info`` (see
     reward(obs, action, next_obs, info) -> float
     success(info) -> bool
 
-An episode succeeds if the success test holds at *any* step.
+An episode succeeds if the success test holds at *any* step. A test that needs the episode so
+far ("above z = 0.30 for 20 consecutive steps") is registered with ``stateful=True``: its
+``success`` is then a factory called at every episode start, returning that episode's test::
+
+    class HeldHigh:
+        def __init__(self):
+            self.run = 0
+
+        def __call__(self, info):
+            self.run = self.run + 1 if info["tcp_pos"][2] > 0.30 else 0
+            return self.run >= 20
+
+    register_target("hold-high", success=HeldHigh, stateful=True)(lift_gripper)
+
+Whoever runs episodes asks :meth:`TargetBehaviour.episode_success` for a fresh test per episode.
 
 Register your own behaviour with :func:`register_target`::
 
@@ -31,6 +45,7 @@ import numpy as np
 
 from rat.envs.metaworld import PAPER_TASKS
 from rat.errors import RatError
+from rat.plugins import Registry
 
 RewardFn = Callable[[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]], float]
 SuccessFn = Callable[[dict[str, Any]], bool]
@@ -51,16 +66,22 @@ class TargetBehaviour:
         success: success test on a step's ``info``.
         env_task: maps the victim's task to the task whose environment the attack runs in
             (identity for the manipulation scenario, the opposite task for opposite behaviours).
+        stateful: ``success`` is a factory of per-episode tests (see the module docstring).
     """
 
     name: str
     description: str
     reward: RewardFn
-    success: SuccessFn
+    success: SuccessFn | Callable[[], SuccessFn]
     env_task: Callable[[str], str] = field(default=_same_task)
+    stateful: bool = False
+
+    def episode_success(self) -> SuccessFn:
+        """The success test of one new episode: call it on every step's ``info``, in order."""
+        return self.success() if self.stateful else self.success
 
 
-_REGISTRY: dict[str, TargetBehaviour] = {}
+_REGISTRY: Registry[TargetBehaviour] = Registry("target behaviour", "rat list targets")
 
 
 def register_target(
@@ -69,14 +90,18 @@ def register_target(
     success: SuccessFn,
     description: str = "",
     env_task: Callable[[str], str] = _same_task,
+    stateful: bool = False,
     overwrite: bool = False,
 ) -> Callable[[RewardFn], RewardFn]:
-    """Decorator that registers ``reward`` as the target behaviour ``name``."""
+    """Decorator that registers ``reward`` as the target behaviour ``name``.
+
+    ``success`` is a test of one step's ``info``, or, with ``stateful=True``, a factory of
+    per-episode tests that may keep state across the episode's steps.
+    """
 
     def decorate(reward: RewardFn) -> RewardFn:
-        if name in _REGISTRY and not overwrite:
-            raise RatError(f"target behaviour '{name}' is already registered; pick another name or pass overwrite=True")
-        _REGISTRY[name] = TargetBehaviour(name, description or (reward.__doc__ or "").strip(), reward, success, env_task)
+        _REGISTRY.add(name, TargetBehaviour(name, description or (reward.__doc__ or "").strip(), reward, success,
+                                            env_task, stateful), overwrite)
         return reward
 
     return decorate
@@ -84,14 +109,12 @@ def register_target(
 
 def get_target(name: str) -> TargetBehaviour:
     """Look a target behaviour up by name."""
-    if name not in _REGISTRY:
-        raise RatError(f"unknown target behaviour '{name}': run `rat list targets` for the names")
-    return _REGISTRY[name]
+    return _REGISTRY.get(name)
 
 
 def list_targets() -> list[TargetBehaviour]:
     """All registered target behaviours, sorted by name."""
-    return [_REGISTRY[k] for k in sorted(_REGISTRY)]
+    return _REGISTRY.all()
 
 
 # --- the manipulation scenario -------------------------------------------------------------

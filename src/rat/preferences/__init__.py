@@ -7,7 +7,8 @@ from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, brad
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory, SegmentPairs
 from rat.preferences.store import LabelSet, LabelStore
-from rat.preferences.teacher import Labels, ScriptedTeacher, TeacherConfig
+from rat.preferences.labeller import Labeller, Labels, QueryRound
+from rat.preferences.teacher import ScriptedTeacher, TeacherConfig
 
 __all__ = [
     "STRATEGIES",
@@ -15,9 +16,11 @@ __all__ = [
     "FeedbackSchedule",
     "LabelSet",
     "LabelStore",
+    "Labeller",
     "Labels",
     "PebbleConfig",
     "PebbleLearner",
+    "QueryRound",
     "RewardEnsemble",
     "RewardModelConfig",
     "ScriptedTeacher",

@@ -12,24 +12,25 @@
 
 from __future__ import annotations
 
-import json
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
-from tqdm.auto import tqdm
 
-from rat.checkpoint import load_checkpoint, save_checkpoint
+from rat import seeds
+from rat.device import resolve_device
 from rat.envs import check_task, get_target, make_task
 from rat.envs.targets import TargetBehaviour
 from rat.errors import RatError
 from rat.eval import evaluate
+from rat.loop import TrainingLoop, write_report
+from rat.preferences.labeller import Labeller
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.segments import EpisodeHistory
 from rat.plots import plot_reward_quality, plot_training
 from rat.preferences.store import LabelStore
+from rat.reports import IntentionReport
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything
 
 
@@ -47,6 +48,7 @@ class IntentionConfig:
     final_eval_episodes: int = 30  #: episodes of the final evaluation
     quality_episodes: int = 5  #: fresh rollouts for the reward-quality report
     checkpoint_every: int = 5_000  #: steps between checkpoints
+    device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
         for name in ("total_steps", "eval_every", "eval_episodes", "final_eval_episodes", "quality_episodes",
@@ -99,7 +101,65 @@ def reward_quality(ensemble, episodes: list[dict[str, np.ndarray]], segment_leng
     return RewardQuality(accuracy, int(decided.sum()), pearson, len(r_true))
 
 
-def train_intention(config: IntentionConfig, out: str | Path, progress: bool = True, tensorboard: bool = False) -> dict:
+class IntentionTrainer:
+    """PEBBLE alone in the target's environment, one environment step at a time (a :class:`~rat.loop.Trainer`)."""
+
+    kind = "intention-run"
+
+    def __init__(self, config: IntentionConfig, target: TargetBehaviour, env_task: str, store: LabelStore,
+                 source: str, labeller: Labeller | None = None):
+        self.config, self.target, self.env_task = config, target, env_task
+        self.rng = seed_everything(config.seed)
+        self.env = env = make_task(env_task, seed=config.seed)
+        obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+        self.learner = PebbleLearner(obs_dim, act_dim, config.pebble, store, source=source, rng=self.rng,
+                                     labeller=labeller, task=env_task, target=config.target,
+                                     device=resolve_device(config.device))
+        self.obs: np.ndarray | None = None
+        self.finished = False
+
+    @property
+    def step(self) -> int:
+        return self.learner.step
+
+    def advance(self) -> dict[str, float] | None:
+        learner = self.learner
+        if self.obs is None:
+            self.obs, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
+            self.ep_return, self.succeeded, self.metrics = 0.0, False, {}
+            self.success_test = self.target.episode_success()
+        obs = self.obs
+        action = learner.act(obs)
+        next_obs, _, terminated, truncated, info = self.env.step(action)
+        r_target = self.target.reward(obs, action, next_obs, info)
+        self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated))
+        self.ep_return += r_target
+        self.succeeded |= self.success_test(info)
+        self.obs = next_obs
+        if terminated or truncated:
+            self.obs = None
+            return {"target_return": self.ep_return, "target_success": float(self.succeeded), **self.metrics}
+        return None
+
+    def evaluate(self) -> dict[str, float]:
+        cfg, learner = self.config, self.learner
+        res = evaluate(lambda o: learner.act(o, deterministic=True), make_task(self.env_task, seed=cfg.seed + seeds.EVAL_ENV),
+                       cfg.eval_episodes, seed=seeds.periodic(self.step), target=self.target)
+        return {"eval_success_rate": res.success_rate, "labels": learner.store.count(learner.source)}
+
+    def state_dict(self) -> dict:
+        return {"learner": self.learner.state_dict(), "rng": rng_state(self.rng)}
+
+    def load_state_dict(self, state: dict, meta: dict) -> None:
+        self.learner.load_state_dict(state["learner"])
+        restore_rng_state(self.rng, state["rng"])
+
+    def checkpoint_meta(self) -> dict:
+        return {}
+
+
+def train_intention(config: IntentionConfig, out: str | Path, progress: bool = True, tensorboard: bool = False,
+                    labeller: Labeller | None = None) -> IntentionReport:
     """Train an intention policy from preference labels in run directory ``out`` (resumable).
 
     Returns the report (also written to ``out/report.json``).
@@ -107,68 +167,32 @@ def train_intention(config: IntentionConfig, out: str | Path, progress: bool = T
     target = get_target(config.target)
     env_task = check_task(target.env_task(check_task(config.task)))
     run = Run(out, config, tensorboard)
-    rng = seed_everything(config.seed)
-    env = make_task(env_task, seed=config.seed)
-    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     store = LabelStore(run.dir / "labels.sqlite")
-    learner = PebbleLearner(obs_dim, act_dim, config.pebble, store, source=run.dir.name, rng=rng,
-                            task=env_task, target=config.target)
-    if run.has_checkpoint():
-        state, _ = load_checkpoint(run.checkpoint_path, "intention-run")
-        learner.load_state_dict(state["learner"])
-        restore_rng_state(rng, state["rng"])
-        run.logger.truncate_after(learner.step)
+    trainer = IntentionTrainer(config, target, env_task, store, run.dir.name, labeller)
+    learner = trainer.learner
+    loop = TrainingLoop(run, trainer, config.total_steps, eval_every=config.eval_every,
+                        checkpoint_every=config.checkpoint_every, desc=f"intention {config.target} on {env_task}",
+                        progress=progress)
+    loop.resume()
+    train_seconds = loop.run()
 
-    def checkpoint():
-        save_checkpoint(run.checkpoint_path, "intention-run", {"learner": learner.state_dict(), "rng": rng_state(rng)},
-                        {"step": learner.step})
-
-    started = time.perf_counter()
-    bar = tqdm(total=config.total_steps, initial=learner.step, desc=f"intention {config.target} on {env_task}",
-               disable=not progress)
-    obs, _ = env.reset(seed=int(rng.integers(2**31)))
-    ep_return, ep_success, metrics = 0.0, False, {}
-    while learner.step < config.total_steps:
-        action = learner.act(obs)
-        next_obs, _, terminated, truncated, info = env.step(action)
-        r_target = target.reward(obs, action, next_obs, info)
-        metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated))
-        ep_return += r_target
-        ep_success |= target.success(info)
-        obs = next_obs
-        bar.update(1)
-        if terminated or truncated:
-            run.logger.log(learner.step, {"target_return": ep_return, "target_success": float(ep_success), **metrics})
-            obs, _ = env.reset(seed=int(rng.integers(2**31)))
-            ep_return, ep_success, metrics = 0.0, False, {}
-        if learner.step % config.eval_every == 0:
-            res = evaluate(lambda o: learner.act(o, deterministic=True), make_task(env_task, seed=config.seed + 7),
-                           config.eval_episodes, seed=10**7 + learner.step, target=target)
-            run.logger.log(learner.step, {"eval_success_rate": res.success_rate, "labels": learner.store.count(learner.source)})
-            bar.set_postfix(success=f"{res.success_rate:.0%}", labels=learner.asked)
-        if learner.step % config.checkpoint_every == 0:
-            checkpoint()
-    bar.close()
-    train_seconds = time.perf_counter() - started
-
-    fresh = make_task(env_task, seed=config.seed + 1)
+    fresh = make_task(env_task, seed=config.seed + seeds.FRESH_ENV)
     final = evaluate(lambda o: learner.act(o, deterministic=True), fresh, config.final_eval_episodes,
-                     seed=2 * 10**7, target=target, progress=progress)
-    episodes = rollouts(lambda o: learner.agent.act(o), fresh, target, config.quality_episodes, seed=3 * 10**7)
-    quality = reward_quality(learner.ensemble, episodes, config.pebble.segment_length, 500, rng)
+                     seed=seeds.FINAL, target=target, progress=progress)
+    episodes = rollouts(lambda o: learner.agent.act(o), fresh, target, config.quality_episodes, seed=seeds.SELECTION)
+    quality = reward_quality(learner.ensemble, episodes, config.pebble.segment_length, 500,
+                             np.random.default_rng(seeds.SELECTION + config.seed))  # held-out pairs of their own
     title = f"{config.target} on {env_task}: {learner.store.count(learner.source)} labels"
     plot_reward_quality(episodes[0], learner.ensemble.r_hat(episodes[0]["obs"], episodes[0]["action"]),
                         run.dir / "reward_quality.png", title)
     plot_training(run.logger.path, run.dir / "training.png", f"intention policy: {title}")
-    report = {
-        "task": env_task, "victim_task": config.task, "target": config.target, "steps": learner.step,
-        "queries_asked": learner.asked, "labels": store.count(learner.source),
-        "target_success_rate": final.success_rate, "target_success_ci": list(final.success_ci),
-        "final_eval_episodes": final.episodes,
-        "preference_accuracy": quality.preference_accuracy, "held_out_pairs": quality.held_out_pairs,
-        "reward_pearson": quality.pearson, "quality_steps": quality.steps,
-        "train_minutes_this_session": round(train_seconds / 60, 2),
-    }
-    (run.dir / "report.json").write_text(json.dumps(report, indent=1))
+    report = IntentionReport(
+        task=env_task, victim_task=config.task, target=config.target, steps=learner.step,
+        queries_asked=learner.asked, labels=store.count(learner.source),
+        target_success_rate=final.success_rate, target_success_ci=list(final.success_ci),
+        final_eval_episodes=final.episodes, preference_accuracy=quality.preference_accuracy,
+        held_out_pairs=quality.held_out_pairs, reward_pearson=quality.pearson, quality_steps=quality.steps,
+        train_minutes_this_session=round(train_seconds / 60, 2))
+    write_report(run.dir, report)
     store.close()
     return report

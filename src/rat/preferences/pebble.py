@@ -33,6 +33,7 @@ from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory
 from rat.preferences.store import LabelStore
+from rat.preferences.labeller import Labeller, QueryRound
 from rat.preferences.teacher import ScriptedTeacher, TeacherConfig
 
 
@@ -42,7 +43,7 @@ def _intention_sac() -> SACConfig:
 
 @dataclass(frozen=True)
 class PebbleConfig:
-    """PEBBLE settings (defaults: the paper's appendix A.3 and ``algorithm.md`` §2)."""
+    """PEBBLE settings (defaults: the paper's appendix A.3 and ``docs/design.md`` §4)."""
 
     sac: SACConfig = field(default_factory=_intention_sac)  #: intention policy's SAC
     seed_steps: int = 1_000  #: uniform random actions first
@@ -91,20 +92,21 @@ class PebbleLearner:
         store: where labels go (and come back from on resume).
         source: this run's name in the store.
         rng: the run's random generator (segments, queries, batches, teacher noise).
-        teacher: who labels; default: a scripted teacher with ``config.teacher``.
+        labeller: who answers the queries; default: a scripted teacher with ``config.teacher``.
         task, target: recorded with every label.
+        device: where the networks and batches live.
     """
 
     def __init__(self, obs_dim: int, act_dim: int, config: PebbleConfig, store: LabelStore, source: str,
-                 rng: np.random.Generator, teacher: ScriptedTeacher | None = None, task: str | None = None,
-                 target: str | None = None):
-        self.config, self.store, self.source, self.rng = config, store, source, rng
+                 rng: np.random.Generator, labeller: Labeller | None = None, task: str | None = None,
+                 target: str | None = None, device: str | torch.device = "cpu"):
+        self.config, self.store, self.source, self.rng, self.device = config, store, source, rng, torch.device(device)
         self.task, self.target = task, target
-        self.teacher = teacher or ScriptedTeacher(config.teacher)
-        self.agent = SAC(obs_dim, act_dim, config.sac)
+        self.labeller = labeller or ScriptedTeacher(config.teacher)
+        self.agent = SAC(obs_dim, act_dim, config.sac, device=self.device)
         self.buffer = ReplayBuffer(obs_dim, act_dim, config.buffer_capacity)
         self.history = EpisodeHistory(config.max_episodes)
-        self.ensemble = RewardEnsemble(obs_dim, act_dim, config.reward)
+        self.ensemble = RewardEnsemble(obs_dim, act_dim, config.reward).to(self.device)
         self.entropy_stats = RunningMeanStd()
         self.schedule = config.schedule
         self.step = 0  # environment steps observed
@@ -153,14 +155,14 @@ class PebbleLearner:
 
     def update(self) -> dict[str, float]:
         """One SAC update: on the intrinsic reward during pre-training, on r̂ afterwards."""
-        batch = self.buffer.sample(min(self.config.sac.batch_size, len(self.buffer)), self.rng)
+        batch = self.buffer.sample(min(self.config.sac.batch_size, len(self.buffer)), self.rng, self.device)
         if self.pretraining:
-            pool = torch.as_tensor(self.buffer.obs[: len(self.buffer)])
+            pool = torch.as_tensor(self.buffer.obs[: len(self.buffer)], device=self.device)
             batch["reward"] = state_entropy_reward(batch["obs"], pool, self.entropy_stats, self.config.entropy_k)
         return self.agent.update(batch)
 
     def segment_return_scale(self) -> float:
-        """Mean true target return of a segment in the recent episodes (the teacher's threshold scale)."""
+        """Mean true target return of a segment in the recent episodes (B-Pref's threshold scale)."""
         L = self.config.segment_length
         return float(np.mean([e[2].sum() * L / len(e[2]) for e in self.history.with_current()]))
 
@@ -168,8 +170,8 @@ class PebbleLearner:
         """Ask ``n`` queries, train r̂ on every label so far, relabel the buffer.
 
         If the store already holds this round (it finished before an interruption), its labels
-        are used and nothing is stored twice; the round still draws its candidates and teacher
-        noise, so a resumed run consumes random numbers exactly as an uninterrupted one.
+        are used and nothing is stored twice; the round still draws its candidates and asks the
+        labeller, so a resumed run consumes random numbers exactly as an uninterrupted one.
         """
         cfg = self.config
         candidates = self.history.sample_pairs(n * cfg.candidates_factor, cfg.segment_length, self.rng)
@@ -178,10 +180,10 @@ class PebbleLearner:
         if strategy.startswith("kcenter") and self.store.count(self.source):
             labelled = pair_features(self.store.read(self.source).pairs)
         chosen = candidates.select(select_queries(strategy, candidates, n, self.ensemble, self.rng, labelled))
-        self.teacher.set_scale(self.segment_return_scale())
-        labels = self.teacher.label(chosen, self.rng)
+        query = QueryRound(self.round, self.step, self.source, self.task, self.target, self.segment_return_scale())
+        labels = self.labeller.label(chosen, self.rng, query)
         if self.round not in {r["round"] for r in self.store.rounds(self.source)}:
-            self.store.add(chosen.select(labels.index), labels.y, self.teacher.describe(), self.source,
+            self.store.add(chosen.select(labels.index), labels.y, self.labeller.describe(), self.source,
                            round=self.round, task=self.task, target=self.target, step=self.step, asked=n)
         self.asked += n
         first = self.round == 0
@@ -213,7 +215,6 @@ class PebbleLearner:
             "buffer": self.buffer.state_dict(), "history": self.history.state_dict(),
             "entropy_stats": self.entropy_stats.state_dict(),
             "counters": {"step": self.step, "asked": self.asked, "round": self.round},
-            "teacher_scale": self.teacher.scale,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -226,4 +227,3 @@ class PebbleLearner:
         self.entropy_stats.load_state_dict(state["entropy_stats"])
         c = state["counters"]
         self.step, self.asked, self.round = int(c["step"]), int(c["asked"]), int(c["round"])
-        self.teacher.set_scale(float(state["teacher_scale"]))

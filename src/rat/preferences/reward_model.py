@@ -53,6 +53,10 @@ class RewardEnsemble(nn.Module):
         self.rounds = 0
         self.epochs_run = 0
 
+    @property
+    def _device(self) -> torch.device:
+        return next(self.parameters()).device
+
     def member_rewards(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Rewards of every member, ``[members, ...]`` for inputs ``[..., dim]``."""
         x = torch.cat([obs, action], dim=-1)
@@ -61,16 +65,18 @@ class RewardEnsemble(nn.Module):
     @torch.no_grad()
     def r_hat(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
         """The ensemble-mean reward of transitions (numpy in and out, batched over the leading axes)."""
-        o = torch.as_tensor(obs, dtype=torch.float32)
-        a = torch.as_tensor(action, dtype=torch.float32)
-        return self.member_rewards(o, a).mean(0).numpy()
+        device = self._device
+        o = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        a = torch.as_tensor(action, dtype=torch.float32, device=device)
+        return self.member_rewards(o, a).mean(0).cpu().numpy()
 
     @torch.no_grad()
     def preference_probabilities(self, obs0, act0, obs1, act1) -> np.ndarray:
         """Each member's P[σ¹ ≻ σ⁰] for every pair: ``[members, n]``."""
-        r0 = self.member_rewards(torch.as_tensor(obs0), torch.as_tensor(act0)).sum(-1)
-        r1 = self.member_rewards(torch.as_tensor(obs1), torch.as_tensor(act1)).sum(-1)
-        return torch.sigmoid(r1 - r0).numpy()
+        d = self._device
+        r0 = self.member_rewards(torch.as_tensor(obs0, device=d), torch.as_tensor(act0, device=d)).sum(-1)
+        r1 = self.member_rewards(torch.as_tensor(obs1, device=d), torch.as_tensor(act1, device=d)).sum(-1)
+        return torch.sigmoid(r1 - r0).cpu().numpy()
 
     def train_round(self, obs0, act0, obs1, act1, y, rng: np.random.Generator) -> dict[str, float]:
         """Train every member on all labels until accuracy > ``stop_accuracy`` or ``max_epochs``.
@@ -79,7 +85,7 @@ class RewardEnsemble(nn.Module):
         correct for accuracy, as in B-Pref. Returns the round's metrics.
         """
         cfg = self.config
-        data = [torch.as_tensor(np.asarray(a, np.float32)) for a in (obs0, act0, obs1, act1, y)]
+        data = [torch.as_tensor(np.asarray(a, np.float32), device=self._device) for a in (obs0, act0, obs1, act1, y)]
         n = len(data[-1])
         for epoch in range(cfg.max_epochs):
             correct, total_loss = np.zeros(cfg.members), 0.0

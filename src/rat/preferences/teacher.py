@@ -14,7 +14,7 @@ Noise options (B-Pref, Lee et al. 2021):
 - ``equal``: label 0.5 when ``|R¹ − R⁰| < equal × scale``.
 
 ``scale`` is the typical segment return (B-Pref: the mean true episode return times
-``length / horizon``), set with :meth:`ScriptedTeacher.set_scale`.
+``length / horizon``): the ``segment_return_scale`` of the :class:`~rat.preferences.labeller.QueryRound`.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from rat.errors import RatError
+from rat.preferences.labeller import Labels, QueryRound
 from rat.preferences.segments import SegmentPairs
 
 
@@ -46,14 +47,6 @@ class TeacherConfig:
             raise RatError("teacher beta, skip and equal must not be negative")
 
 
-@dataclass
-class Labels:
-    """The answered queries: ``index`` into the pairs asked, and the label ``y`` of each."""
-
-    index: np.ndarray  # [m] int
-    y: np.ndarray  # [m] float in {0, 0.5, 1} (or Boltzmann draws)
-
-
 def segment_returns(reward: np.ndarray, gamma: float) -> np.ndarray:
     """Myopically discounted sums ``sum_t gamma^(L-1-t) r_t`` over the last axis."""
     length = reward.shape[-1]
@@ -62,22 +55,21 @@ def segment_returns(reward: np.ndarray, gamma: float) -> np.ndarray:
 
 
 class ScriptedTeacher:
-    """Labels segment pairs from their true target reward, with B-Pref's noise options."""
+    """A :class:`~rat.preferences.labeller.Labeller` that labels segment pairs from their true target
+    reward, with B-Pref's noise options."""
 
     def __init__(self, config: TeacherConfig = TeacherConfig()):
         self.config = config
-        self.scale = 0.0
-
-    def set_scale(self, segment_return_scale: float) -> None:
-        """Set the typical segment return that the skip and equal thresholds are fractions of."""
-        self.scale = float(abs(segment_return_scale))
+        self.scale = 0.0  # of the last round answered
 
     def describe(self) -> dict:
         """Who labelled: JSON-able, stored with every label."""
         return {"type": "scripted", **asdict(self.config), "scale": self.scale}
 
-    def label(self, pairs: SegmentPairs, rng: np.random.Generator) -> Labels:
+    def label(self, pairs: SegmentPairs, rng: np.random.Generator, query: QueryRound | None = None) -> Labels:
         cfg = self.config
+        if query is not None and np.isfinite(query.segment_return_scale):
+            self.scale = float(abs(query.segment_return_scale))
         r0 = segment_returns(pairs.reward0, cfg.gamma)
         r1 = segment_returns(pairs.reward1, cfg.gamma)
         if np.isnan(r0).any() or np.isnan(r1).any():

@@ -82,10 +82,8 @@ def load_actor(path: str | Path) -> tuple[TanhGaussianActor, dict[str, Any]]:
 def load_rat_victim(path: str | Path, name: str | None = None) -> ModuleVictim:
     """Load a victim checkpoint made by ``rat victim train`` (frozen)."""
     actor, meta = load_actor(path)
-    victim = ModuleVictim(actor, box_from_json(meta["observation_space"]), box_from_json(meta["action_space"]),
-                          name=name or str(path))
-    victim.meta = meta
-    return victim
+    return ModuleVictim(actor, box_from_json(meta["observation_space"]), box_from_json(meta["action_space"]),
+                        name=name or str(path), meta=meta)
 
 
 # --- Stable-Baselines3 --------------------------------------------------------------------------
@@ -211,6 +209,6 @@ def load_sb3_victim(path: str | Path, name: str | None = None) -> ModuleVictim:
         policy, squashed = _SB3PPOActor(state, _activation_from_kwargs(kwargs, nn.Tanh)), False
     else:
         raise RatError(f"'{path}' holds no SB3 MlpPolicy actor this adapter knows (SAC, TD3, DDPG, PPO, A2C)")
-    victim = ModuleVictim(policy, obs_space, act_space, name=name or f"sb3:{path}", squashed=squashed)
-    victim.meta = {"source": "stable-baselines3", "path": str(path)}
+    victim = ModuleVictim(policy, obs_space, act_space, name=name or f"sb3:{path}", squashed=squashed,
+                          meta={"source": "stable-baselines3", "path": str(path)})
     return victim

@@ -27,11 +27,13 @@ class Victim(Protocol):
         observation_space: the observations it was trained on (a ``Box``).
         action_space: the actions it emits (a ``Box``).
         name: where it came from, for reports.
+        meta: what is known of it (JSON-able): ``task`` where it records one, its provenance.
     """
 
     observation_space: gym.spaces.Box
     action_space: gym.spaces.Box
     name: str
+    meta: dict[str, Any]
 
     def act(self, obs: torch.Tensor, context: Any = None) -> torch.Tensor:
         """Deterministic actions ``[B, act_dim]`` for observations ``[B, obs_dim]``, differentiable in ``obs``.
@@ -64,13 +66,15 @@ class ModuleVictim(nn.Module):
         name: a label for reports.
         squashed: the module outputs actions in ``[-1, 1]`` that are rescaled to the action
             space's bounds (SB3 and this project's actors do this); otherwise they are clipped.
+        meta: what is known of it (``task``, provenance); see :attr:`Victim.meta`.
     """
 
     def __init__(self, policy: nn.Module, observation_space: gym.spaces.Box, action_space: gym.spaces.Box,
-                 name: str = "torch-module", squashed: bool = True):
+                 name: str = "torch-module", squashed: bool = True, meta: dict[str, Any] | None = None):
         super().__init__()
         self.policy = freeze(policy)
         self.observation_space, self.action_space, self.name = observation_space, action_space, name
+        self.meta = dict(meta or {})
         self.squashed = squashed
         self.register_buffer("low", torch.as_tensor(action_space.low, dtype=torch.float32))
         self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
@@ -97,9 +101,11 @@ class ModuleVictim(nn.Module):
 def numpy_policy(victim: Victim):
     """``obs -> action`` in numpy for rollouts of a memoryless victim (one observation at a time)."""
 
+    device = next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, nn.Module) else "cpu"
+
     @torch.no_grad()
     def act(obs: np.ndarray) -> np.ndarray:
-        return victim.act(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+        return victim.act(torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)).squeeze(0).cpu().numpy()
 
     return act
 

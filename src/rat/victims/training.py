@@ -17,13 +17,15 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from rat import seeds
 from rat.agents.buffer import ReplayBuffer
 from rat.agents.networks import TanhGaussianActor
 from rat.agents.sac import SAC, SACConfig
-from rat.checkpoint import load_checkpoint, save_checkpoint
+from rat.device import resolve_device
 from rat.envs.metaworld import make_task
 from rat.eval import EvalResult, evaluate
 from rat.errors import RatError
+from rat.loop import TrainingLoop
 from rat.runs import Run, git_commit, restore_rng_state, rng_state, seed_everything
 from rat.victims.adapters import save_victim
 from rat.victims.base import ModuleVictim, numpy_policy
@@ -50,7 +52,7 @@ class VictimConfig:
     demo_noise: float = 0.3  #: std of Gaussian noise on executed expert actions (DART)
     demo_episode_steps: int = 200  #: steps kept per demonstration episode (experts finish in 45-120)
     # behaviour cloning (bc, and the warm start of sac-demo)
-    bc_updates: int = 20_000  #: gradient steps of behaviour cloning
+    bc_updates: int = 20_000  #: gradient steps of behaviour cloning (sac-demo: 0 seeds only the replay buffer)
     bc_batch: int = 256  #: batch size of behaviour cloning
     bc_lr: float = 1e-3  #: Adam learning rate of behaviour cloning
     # SAC (sac, sac-demo)
@@ -59,16 +61,25 @@ class VictimConfig:
     random_steps: int = 5_000  #: uniform random actions before learning (sac only)
     buffer_capacity: int = 1_000_000  #: replay buffer size
     eval_every: int = 10_000  #: environment steps between evaluations during SAC
+    eval_every_episodes: int = 10  #: episodes of each evaluation during SAC
+    stop_success: float | None = None  #: end SAC early once this many evaluations in a row reach this success rate
+    stop_patience: int = 3  #: consecutive evaluations at ``stop_success`` that end SAC early
     # evaluation and checkpoints
     eval_episodes: int = 50  #: final evaluation episodes
     checkpoint_every: int = 10_000  #: environment steps (SAC) or updates (BC) between checkpoints
+    device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise RatError(f"unknown victim method '{self.method}'; use one of: {', '.join(METHODS)}")
-        for name in ("demo_episodes", "bc_updates", "total_steps", "eval_episodes", "checkpoint_every", "eval_every"):
+        for name in ("demo_episodes", "total_steps", "eval_episodes", "checkpoint_every", "eval_every",
+                     "eval_every_episodes", "stop_patience"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        if self.bc_updates < 0 or (self.bc_updates == 0 and self.method == "bc"):
+            raise RatError(f"bc-updates must be positive for bc (0 is allowed for sac-demo), got {self.bc_updates}")
+        if self.stop_success is not None and not 0 < self.stop_success <= 1:
+            raise RatError(f"stop-success must lie in (0, 1], got {self.stop_success}")
         if self.random_steps < 0 or self.demo_noise < 0:
             raise RatError("random-steps and demo-noise must not be negative")
 
@@ -81,28 +92,24 @@ def bc_loss(actor: TanhGaussianActor, obs: torch.Tensor, expert_action: torch.Te
     return ((actor(obs) - expert_action) ** 2).sum(-1).mean()
 
 
+def bc_update(actor: TanhGaussianActor, optimizer: torch.optim.Optimizer, obs: torch.Tensor, action: torch.Tensor,
+              batch: int, rng: np.random.Generator) -> float:
+    """One behaviour-cloning step on a random batch of the labelled states; returns its loss."""
+    idx = torch.as_tensor(rng.integers(0, len(obs), size=batch))
+    loss = bc_loss(actor, obs[idx], action[idx])
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return loss.item()
+
+
 def behaviour_clone(actor: TanhGaussianActor, demos: Demonstrations, updates: int, batch: int,
-                    optimizer: torch.optim.Optimizer, rng: np.random.Generator, start: int = 0,
-                    on_chunk=None, chunk: int = 1000, progress: bool = False) -> int:
-    """Fit ``actor`` to the demonstrations' labels; calls ``on_chunk(update, loss)`` every ``chunk`` updates."""
-    obs = torch.as_tensor(demos.obs)
-    act = torch.as_tensor(demos.action)
-    bar = tqdm(total=updates, initial=start, desc="behaviour cloning", disable=not progress, leave=False)
-    losses = []
-    for update in range(start, updates):
-        idx = torch.as_tensor(rng.integers(0, len(obs), size=batch))
-        loss = bc_loss(actor, obs[idx], act[idx])
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
-        bar.update(1)
-        if (update + 1) % chunk == 0 or update + 1 == updates:
-            if on_chunk is not None:
-                on_chunk(update + 1, float(np.mean(losses)))
-            losses = []
-    bar.close()
-    return updates
+                    optimizer: torch.optim.Optimizer, rng: np.random.Generator, progress: bool = False) -> None:
+    """Fit ``actor`` to the demonstrations' labels with ``updates`` steps (SAC's optional warm start)."""
+    device = next(actor.parameters()).device
+    obs, act = torch.as_tensor(demos.obs, device=device), torch.as_tensor(demos.action, device=device)
+    for _ in tqdm(range(updates), desc="behaviour cloning", disable=not progress, leave=False):
+        bc_update(actor, optimizer, obs, act, batch, rng)
 
 
 def _demos_state(d: Demonstrations) -> dict:
@@ -118,94 +125,148 @@ def _get_demos(cfg: VictimConfig, env, rng, progress) -> Demonstrations:
     return demos
 
 
-def _train_bc(cfg: VictimConfig, run: Run, rng: np.random.Generator, env, progress: bool) -> TanhGaussianActor:
-    actor = TanhGaussianActor(env.observation_space.shape[0], env.action_space.shape[0], cfg.hidden, cfg.layers)
-    optimizer = torch.optim.Adam(actor.parameters(), lr=cfg.bc_lr)
-    start = 0
-    if run.has_checkpoint():
-        state, meta = load_checkpoint(run.checkpoint_path, "victim-bc-run")
-        actor.load_state_dict(state["actor"])
-        optimizer.load_state_dict(state["optimizer"])
-        restore_rng_state(rng, state["rng"])
-        demos = Demonstrations(**state["demos"])
-        start = int(meta["update"])
-        run.logger.truncate_after(start)
-    else:
-        demos = _get_demos(cfg, env, rng, progress)
-        run.logger.log(0, {"demo_success_rate": demos.success_rate, "demo_transitions": len(demos.obs)})
+class BCTrainer:
+    """Behaviour cloning of the scripted expert, one gradient step at a time (a :class:`~rat.loop.Trainer`)."""
 
-    def on_chunk(update: int, loss: float) -> None:
-        run.logger.log(update, {"bc_loss": loss})
-        if update % cfg.checkpoint_every == 0 or update == cfg.bc_updates:
-            save_checkpoint(run.checkpoint_path, "victim-bc-run",
-                            {"actor": actor.state_dict(), "optimizer": optimizer.state_dict(),
-                             "rng": rng_state(rng), "demos": _demos_state(demos)}, {"update": update})
+    kind = "victim-bc-run"
 
-    chunk = math.gcd(1000, cfg.checkpoint_every)  # log every chunk; every checkpoint falls on a chunk's end
-    behaviour_clone(actor, demos, cfg.bc_updates, cfg.bc_batch, optimizer, rng, start, on_chunk, chunk, progress)
-    return actor
+    def __init__(self, cfg: VictimConfig, run: Run, rng: np.random.Generator, env, progress: bool):
+        self.cfg, self.run, self.rng, self.env, self.progress = cfg, run, rng, env, progress
+        self.device = resolve_device(cfg.device)
+        self.actor = TanhGaussianActor(env.observation_space.shape[0], env.action_space.shape[0], cfg.hidden,
+                                       cfg.layers).to(self.device)
+        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.bc_lr)
+        self.demos: Demonstrations | None = None
+        self.step, self.finished, self.losses = 0, False, []
+        self.chunk = math.gcd(1000, cfg.checkpoint_every)  # log every chunk; every checkpoint falls on a chunk's end
+
+    def _set_demos(self, demos: Demonstrations) -> None:
+        self.demos = demos
+        self.obs = torch.as_tensor(demos.obs, device=self.device)
+        self.action = torch.as_tensor(demos.action, device=self.device)
+
+    def advance(self) -> dict[str, float] | None:
+        if self.demos is None:
+            self._set_demos(_get_demos(self.cfg, self.env, self.rng, self.progress))
+            self.run.logger.log(0, {"demo_success_rate": self.demos.success_rate,
+                                    "demo_transitions": len(self.demos.obs)})
+        self.losses.append(bc_update(self.actor, self.optimizer, self.obs, self.action, self.cfg.bc_batch, self.rng))
+        self.step += 1
+        if self.step % self.chunk == 0 or self.step == self.cfg.bc_updates:
+            loss, self.losses = float(np.mean(self.losses)), []
+            return {"bc_loss": loss}
+        return None
+
+    def evaluate(self) -> dict[str, float]:
+        return {}
+
+    def state_dict(self) -> dict:
+        return {"actor": self.actor.state_dict(), "optimizer": self.optimizer.state_dict(), "rng": rng_state(self.rng),
+                "demos": _demos_state(self.demos)}
+
+    def load_state_dict(self, state: dict, meta: dict) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        restore_rng_state(self.rng, state["rng"])
+        self._set_demos(Demonstrations(**state["demos"]))
+        self.step = int(meta["update"] if "update" in meta else meta["step"])  # older runs recorded only "update"
+
+    def checkpoint_meta(self) -> dict:
+        return {"update": self.step}
 
 
 # --- SAC ---------------------------------------------------------------------------------------
 
 
-def _train_sac(cfg: VictimConfig, run: Run, rng: np.random.Generator, env, progress: bool) -> TanhGaussianActor:
-    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    sac_cfg = replace(cfg.sac, hidden=cfg.hidden, layers=cfg.layers)
-    agent = SAC(obs_dim, act_dim, sac_cfg)
-    buffer = ReplayBuffer(obs_dim, act_dim, cfg.buffer_capacity)
-    step, episode = 0, 0
-    if run.has_checkpoint():
-        state, meta = load_checkpoint(run.checkpoint_path, "victim-sac-run")
-        agent.load_state_dict(state["agent"])
-        agent.load_optimizer_state(state["optimizers"])
-        buffer.load_state_dict(state["buffer"])
-        restore_rng_state(rng, state["rng"])
-        step, episode = int(meta["step"]), int(meta["episode"])
-        run.logger.truncate_after(step)
-    elif cfg.method == "sac-demo":
-        demos = _get_demos(cfg, env, rng, progress)
-        for i in range(len(demos.obs)):
-            buffer.add(demos.obs[i], demos.executed[i], demos.reward[i], demos.next_obs[i], demos.terminated[i])
-        opt = torch.optim.Adam(agent.actor.parameters(), lr=cfg.bc_lr)
-        behaviour_clone(agent.actor, demos, cfg.bc_updates, cfg.bc_batch, opt, rng, progress=progress)
-    random_steps = cfg.random_steps if cfg.method == "sac" else 0
+class SACVictimTrainer:
+    """SAC on the task reward, one environment step at a time (a :class:`~rat.loop.Trainer`).
 
-    def checkpoint():
-        save_checkpoint(run.checkpoint_path, "victim-sac-run",
-                        {"agent": agent.state_dict(), "optimizers": agent.optimizer_state(),
-                         "buffer": buffer.state_dict(), "rng": rng_state(rng)},
-                        {"step": step, "episode": episode})
+    ``sac-demo`` seeds the replay buffer with scripted demonstrations (and, with ``bc_updates``,
+    warm-starts the actor by behaviour cloning) before the first step; ``stop_success`` ends
+    training once ``stop_patience`` evaluations in a row reach it.
+    """
 
-    bar = tqdm(total=cfg.total_steps, initial=step, desc=f"SAC {cfg.task}", disable=not progress)
-    obs, _ = env.reset(seed=int(rng.integers(2**31)))
-    ep_return, ep_success, t0, metrics = 0.0, False, time.perf_counter(), {}
-    while step < cfg.total_steps:
-        action = env.action_space.sample() if step < random_steps else agent.act(obs)
-        next_obs, reward, terminated, truncated, info = env.step(action)
-        buffer.add(obs, action, reward, next_obs, terminated)
-        ep_return += reward
-        ep_success |= info["success"]
-        obs = next_obs
-        step += 1
-        bar.update(1)
-        if step >= random_steps and len(buffer) >= sac_cfg.batch_size:
-            metrics = agent.update(buffer.sample(sac_cfg.batch_size, rng))
+    kind = "victim-sac-run"
+
+    def __init__(self, cfg: VictimConfig, run: Run, rng: np.random.Generator, env, progress: bool):
+        self.cfg, self.run, self.rng, self.env, self.progress = cfg, run, rng, env, progress
+        self.device = resolve_device(cfg.device)
+        obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+        self.sac_cfg = replace(cfg.sac, hidden=cfg.hidden, layers=cfg.layers)
+        self.agent = SAC(obs_dim, act_dim, self.sac_cfg, device=self.device)
+        self.buffer = ReplayBuffer(obs_dim, act_dim, cfg.buffer_capacity)
+        self.step, self.episode, self.streak, self.started = 0, 0, 0, False
+        self.random_steps = cfg.random_steps if cfg.method == "sac" else 0
+        self.obs: np.ndarray | None = None
+        self.t0, self.t0_step, self.metrics = time.perf_counter(), 0, {}
+
+    @property
+    def finished(self) -> bool:
+        return self.streak >= self.cfg.stop_patience
+
+    def _warm_start(self) -> None:
+        cfg = self.cfg
+        if cfg.method == "sac-demo":
+            demos = _get_demos(cfg, self.env, self.rng, self.progress)
+            for i in range(len(demos.obs)):
+                self.buffer.add(demos.obs[i], demos.executed[i], demos.reward[i], demos.next_obs[i],
+                                demos.terminated[i])
+            if cfg.bc_updates > 0:
+                opt = torch.optim.Adam(self.agent.actor.parameters(), lr=cfg.bc_lr)
+                behaviour_clone(self.agent.actor, demos, cfg.bc_updates, cfg.bc_batch, opt, self.rng, self.progress)
+        self.started = True
+
+    def advance(self) -> dict[str, float] | None:
+        if not self.started:
+            self._warm_start()
+        if self.obs is None:
+            self.obs, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
+            self.ep_return, self.succeeded = 0.0, False
+        obs = self.obs
+        action = self.env.action_space.sample() if self.step < self.random_steps else self.agent.act(obs)
+        next_obs, reward, terminated, truncated, info = self.env.step(action)
+        self.buffer.add(obs, action, reward, next_obs, terminated)
+        self.ep_return += reward
+        self.succeeded |= info["success"]
+        self.obs = next_obs
+        self.step += 1
+        if self.step >= self.random_steps and len(self.buffer) >= self.sac_cfg.batch_size:
+            self.metrics = self.agent.update(self.buffer.sample(self.sac_cfg.batch_size, self.rng, self.device))
         if terminated or truncated:
-            episode += 1
-            run.logger.log(step, {"episode_return": ep_return, "episode_success": float(ep_success),
-                                  "steps_per_second": step / max(time.perf_counter() - t0, 1e-9), **metrics})
-            obs, _ = env.reset(seed=int(rng.integers(2**31)))
-            ep_return, ep_success = 0.0, False
-        if step % cfg.eval_every == 0:
-            res = evaluate(lambda o: agent.act(o, deterministic=True), make_task(cfg.task, seed=cfg.seed + 10**6),
-                           10, seed=cfg.seed + 10**6 + step)
-            run.logger.log(step, {"eval_success_rate": res.success_rate, "eval_return": res.mean_return})
-            bar.set_postfix(success=f"{res.success_rate:.0%}")
-        if step % cfg.checkpoint_every == 0:
-            checkpoint()
-    bar.close()
-    return agent.actor
+            self.episode += 1
+            self.obs = None
+            return {"episode_return": self.ep_return, "episode_success": float(self.succeeded),
+                    "steps_per_second": (self.step - self.t0_step) / max(time.perf_counter() - self.t0, 1e-9), **self.metrics}
+        return None
+
+    def evaluate(self) -> dict[str, float]:
+        cfg = self.cfg
+        env = make_task(cfg.task, seed=cfg.seed + seeds.VICTIM_EVAL_ENV)
+        res = evaluate(lambda o: self.agent.act(o, deterministic=True), env, cfg.eval_every_episodes,
+                       seed=cfg.seed + seeds.VICTIM_EVAL_ENV + self.step)
+        reached = cfg.stop_success is not None and res.success_rate >= cfg.stop_success
+        self.streak = self.streak + 1 if reached else 0
+        return {"eval_success_rate": res.success_rate, "eval_return": res.mean_return}
+
+    def state_dict(self) -> dict:
+        return {"agent": self.agent.state_dict(), "optimizers": self.agent.optimizer_state(),
+                "buffer": self.buffer.state_dict(), "rng": rng_state(self.rng)}
+
+    def load_state_dict(self, state: dict, meta: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.agent.load_optimizer_state(state["optimizers"])
+        self.buffer.load_state_dict(state["buffer"])
+        restore_rng_state(self.rng, state["rng"])
+        self.step, self.episode = int(meta["step"]), int(meta["episode"])
+        self.streak, self.started = int(meta.get("streak", 0)), True
+        self.t0, self.t0_step = time.perf_counter(), self.step  # speed of this session
+
+    def checkpoint_meta(self) -> dict:
+        return {"episode": self.episode, "streak": self.streak}
+
+    @property
+    def actor(self) -> TanhGaussianActor:
+        return self.agent.actor
 
 
 # --- the one entry point -------------------------------------------------------------------------
@@ -220,16 +281,22 @@ def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, t
     run = Run(out, config, tensorboard)
     rng = seed_everything(config.seed)
     env = make_task(config.task, seed=config.seed)
-    started = time.perf_counter()
-    train = _train_bc if config.method == "bc" else _train_sac
-    actor = train(config, run, rng, env, progress)
-    train_seconds = time.perf_counter() - started
+    if config.method == "bc":
+        trainer, total, eval_every = BCTrainer(config, run, rng, env, progress), config.bc_updates, None
+    else:
+        trainer, total, eval_every = SACVictimTrainer(config, run, rng, env, progress), config.total_steps, config.eval_every
+    loop = TrainingLoop(run, trainer, total, eval_every=eval_every, checkpoint_every=config.checkpoint_every,
+                        checkpoint_at_boundary=config.method == "bc", desc=f"{config.method} {config.task}",
+                        progress=progress)
+    loop.resume()
+    train_seconds = loop.run()
+    actor = trainer.actor.cpu()
 
     victim = ModuleVictim(actor, env.observation_space, env.action_space, name=f"{config.task}:{config.method}")
-    eval_env = make_task(config.task, seed=config.seed + 1)  # episodes never seen in training
-    result = evaluate(numpy_policy(victim), eval_env, config.eval_episodes, seed=10**6 + config.seed, progress=progress)
-    run.logger.log(config.total_steps if config.method != "bc" else config.bc_updates,
-                   {"final_success_rate": result.success_rate, "final_return": result.mean_return})
+    eval_env = make_task(config.task, seed=config.seed + seeds.FRESH_ENV)  # episodes never seen in training
+    result = evaluate(numpy_policy(victim), eval_env, config.eval_episodes, seed=seeds.VICTIM_FINAL + config.seed,
+                      progress=progress)
+    run.logger.log(trainer.step, {"final_success_rate": result.success_rate, "final_return": result.mean_return})
     meta = {
         "task": config.task,
         "method": config.method,

@@ -1,0 +1,152 @@
+"""One shape for every attack: the :class:`Attack` protocol, its registry, and what it is trained against.
+
+An attack is registered under a name, like a target behaviour::
+
+    from rat.attacks import AttackSetup, register_attack
+
+    @register_attack("zero", rewards=("none",))
+    class ZeroAttack:  # never perturbs: a sanity check
+        def train(self, setup: AttackSetup, config, out):
+            ...  # set up, evaluate with rat.attacks.evaluate_attack, save, return an AttackReport
+
+        def load(self, run, meta, victim):
+            return lambda obs: np.zeros_like(obs)
+
+Once registered (in the user's own module, made known to the command line by ``--plugin`` or
+the ``rat.plugins`` entry-point group), ``rat attack train --method zero``, ``rat attack eval``,
+``rat list attacks`` and the table-1 grid know it.
+
+Where the attack learns from is a property of one method, not a second name: ``reward`` is
+``labels`` (preference labels: RAT asks its labeller; the RL baselines read a label store),
+``oracle`` (the true target reward) or ``none`` (it learns nothing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import gymnasium as gym
+
+from rat.attacks.threat import Perturbation, ThreatModel
+from rat.checkpoint import read_meta
+from rat.envs.targets import TargetBehaviour
+from rat.errors import RatError
+from rat.plugins import Registry
+from rat.preferences.labeller import Labeller
+from rat.victims.base import Victim
+
+REWARDS = ("labels", "oracle", "none")
+
+
+@dataclass(frozen=True)
+class AttackSetup:
+    """What an attack is trained against, and how.
+
+    Attributes:
+        victim: the frozen victim.
+        target: the behaviour the attacker wants.
+        make_env: ``seed -> environment`` of the target behaviour (its true state is never perturbed).
+        threat: the budget.
+        seed: seeds everything of the attack: networks, its own draws, training episodes.
+        reward: ``labels``, ``oracle`` or ``none`` (see the module docstring).
+        labels: a label store to learn r̂ from, for attacks that learn from labels offline.
+        labeller: who answers preference queries, for attacks that ask (default: a scripted teacher).
+        describe: JSON-able facts recorded in the run and its report (victim spec, victim task, task).
+        progress: show progress bars.
+        tensorboard: also log to TensorBoard.
+    """
+
+    victim: Victim
+    target: TargetBehaviour
+    make_env: Callable[[int], gym.Env]
+    threat: ThreatModel
+    seed: int = 0
+    reward: str = "labels"
+    labels: Path | None = None
+    labeller: Labeller | None = None
+    describe: dict[str, Any] = field(default_factory=dict)
+    progress: bool = True
+    tensorboard: bool = False
+
+
+@runtime_checkable
+class Attack(Protocol):
+    """A targeted attack: trains in a run directory and loads back as a :data:`Perturbation`.
+
+    Registered attacks also carry ``name``, ``description``, ``config`` (their configuration
+    dataclass, or None) and ``rewards`` (the reward sources they support, the default first),
+    set by :func:`register_attack`.
+    """
+
+    name: str
+    description: str
+    config: type | None
+    rewards: tuple[str, ...]
+
+    def train(self, setup: AttackSetup, config: Any, out: Path):
+        """Train (or set up) the attack in run directory ``out``, evaluate it, write ``out/report.json``
+        and return the :class:`~rat.reports.AttackReport`."""
+
+    def load(self, run: Path, meta: dict[str, Any], victim: Victim) -> Perturbation:
+        """The attack saved in run directory ``run`` (``meta``: its ``adversary.json`` metadata) as ``obs -> Δ``."""
+
+
+def _load_builtin() -> None:
+    """Import the modules whose attacks register themselves."""
+    import rat.attacks.rat  # noqa: F401
+    import rat.attacks.rl  # noqa: F401
+    import rat.attacks.simple  # noqa: F401
+
+
+_REGISTRY: Registry[Attack] = Registry("attack", "rat list attacks", _load_builtin)
+
+
+def register_attack(name: str, *, config: type | None = None, rewards: tuple[str, ...] = ("none",),
+                    description: str = "", overwrite: bool = False) -> Callable[[type], type]:
+    """Class decorator: register an attack (made with no arguments) under ``name``."""
+    unknown = [r for r in rewards if r not in REWARDS]
+    if unknown or not rewards:
+        raise RatError(f"attack '{name}': rewards must be some of {', '.join(REWARDS)}, got {', '.join(rewards) or 'none'}")
+
+    def decorate(cls: type) -> type:
+        attack = cls()
+        attack.name, attack.config, attack.rewards = name, config, tuple(rewards)
+        attack.description = description or (cls.__doc__ or "").strip().splitlines()[0]
+        _REGISTRY.add(name, attack, overwrite)
+        return cls
+
+    return decorate
+
+
+def get_attack(name: str) -> Attack:
+    """Look an attack up by name."""
+    return _REGISTRY.get(name)
+
+
+def list_attacks() -> list[Attack]:
+    """Every registered attack, sorted by name."""
+    return _REGISTRY.all()
+
+
+def check_reward(attack: Attack, reward: str) -> str:
+    """``reward`` if ``attack`` supports it, else a one-line error naming the ones it does."""
+    if reward not in attack.rewards:
+        raise RatError(f"attack '{attack.name}' learns from {' or '.join(attack.rewards)}, not '{reward}'; "
+                       f"pass --reward {attack.rewards[0]}")
+    return reward
+
+
+def saved_attack_meta(run: str | Path) -> dict[str, Any]:
+    """The metadata of the attack saved in a run directory (``<run>/adversary.json``)."""
+    path = Path(run)
+    return read_meta(path / "adversary" if path.is_dir() else path)["meta"]
+
+
+def load_attack(run: str | Path, victim: Victim) -> tuple[Perturbation, dict[str, Any]]:
+    """Any saved attack as ``obs -> Δ``, with its metadata (runs written before the registry load too)."""
+    meta = saved_attack_meta(run)
+    attack = get_attack(meta.get("method", "rat"))
+    path = Path(run)
+    return attack.load(path if path.is_dir() else path.parent, meta, victim), meta

@@ -1,0 +1,72 @@
+"""The run directory of a baseline attack: configuration, saved attack, final evaluation, report.
+
+Every baseline (random, MAD, SA-RL, PA-AD, and a user's own) writes the same files as RAT:
+``config.json``, ``metrics.csv`` while it trains, ``adversary.*`` (weights in safetensors,
+metadata in JSON; loading never unpickles), and ``report.json``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium as gym
+
+from rat import seeds
+from rat.attacks.base import AttackSetup, check_reward, get_attack
+from rat.attacks.evaluation import evaluate_attack
+from rat.attacks.threat import Perturbation
+from rat.checkpoint import save_checkpoint
+from rat.loop import write_report
+from rat.reports import AttackReport
+from rat.runs import Run, seed_everything
+from rat.victims.base import check_compatible
+
+ADVERSARY_KIND = "baseline-adversary"
+
+
+def baseline_run(method: str, setup: AttackSetup, out: str | Path, config: dict[str, Any],
+                 train: Callable[[Run, gym.Env, Any], tuple[dict, dict]] | None = None,
+                 prepare: Callable[[gym.Env], Any] | None = None, final_episodes: int = 30) -> AttackReport:
+    """Check the inputs, make the run directory, train (if ``train``), save, evaluate and report.
+
+    Args:
+        method: the attack's registry name.
+        config: the method's JSON-able settings, saved in ``config.json`` and the attack's metadata.
+        prepare: ``env -> prepared``: work on the inputs before the run directory exists (so a
+            mistake leaves nothing behind), e.g. learning r̂ from a label store.
+        train: ``(run, env, prepared) -> (state, details)``: trains in the run and returns the
+            tensors to save as the attack and the numbers for the report; None for attacks that
+            learn nothing.
+    """
+    attack, seed = get_attack(method), setup.seed
+    check_reward(attack, setup.reward)
+    env = setup.make_env(seed)
+    task = setup.describe.get("task")
+    check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
+    threat = setup.threat
+    settings = {"method": method, "reward": setup.reward, "epsilon": threat.epsilon, "norm": threat.norm, "seed": seed,
+                "label_store": str(setup.labels) if setup.labels else None, **config, **setup.describe,
+                "target": setup.target.name}
+    started = time.perf_counter()
+    prepared = prepare(env) if prepare is not None else None
+    details: dict[str, Any] = {}
+    run = Run(out, settings)
+    seed_everything(seed)
+    meta = {**settings, "obs_dim": env.observation_space.shape[0], "act_dim": env.action_space.shape[0]}
+    state: dict = {}
+    if train is not None:
+        state, trained = train(run, env, prepared)
+        details.update(trained)
+    save_checkpoint(run.dir / "adversary", ADVERSARY_KIND, state, meta)
+    perturbation: Perturbation = attack.load(run.dir, meta, setup.victim)
+    final = evaluate_attack(setup.victim, perturbation, setup.make_env(seed + seeds.EVAL_ENV), setup.target, threat,
+                            final_episodes, seeds.FINAL)
+    if not final.within_budget:
+        raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {threat.epsilon}")
+    report = final.report(method, setup.reward, setup, seed, steps=int(details.pop("steps", 0)),
+                          labels=int(details.pop("labels", 0)), minutes=(time.perf_counter() - started) / 60,
+                          details=details)
+    write_report(run.dir, report)
+    return report

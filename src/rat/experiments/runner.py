@@ -1,0 +1,87 @@
+"""From names to runs: the application layer that the command line and the grids call.
+
+``victim spec + target name + method name + preset`` becomes an :class:`~rat.attacks.AttackSetup`
+and a configuration, and the registered attack trains it; a saved run is evaluated or filmed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta
+from rat.attacks.evaluation import evaluate_attack
+from rat.attacks.threat import ThreatModel
+from rat.envs import check_task, get_target, make_task
+from rat.envs.targets import TargetBehaviour
+from rat.errors import RatError
+from rat.eval import evaluate
+from rat.experiments.presets import attack_preset
+from rat.preferences.labeller import Labeller
+from rat.reports import AttackReport
+from rat.victims import load_victim
+from rat.victims.base import Victim, numpy_policy
+
+
+def attack_setup(victim_spec: str, target_name: str, threat: ThreatModel = ThreatModel(), seed: int = 0,
+                 reward: str = "labels", labels: str | Path | None = None, task: str | None = None,
+                 labeller: Labeller | None = None, progress: bool = True, tensorboard: bool = False) -> AttackSetup:
+    """The :class:`AttackSetup` for a victim given by name (``zoo:<task>``, an SB3 zip, a checkpoint).
+
+    ``task`` is the victim's own task, for a victim that does not record one.
+    """
+    target = get_target(target_name)
+    victim, task, env_task = load_victim_for(victim_spec, target, task)
+    return AttackSetup(victim, target, lambda s: make_task(env_task, seed=s), threat, seed, reward,
+                       Path(labels) if labels else None, labeller,
+                       {"victim": victim_spec, "victim_task": task, "task": env_task}, progress, tensorboard)
+
+
+def load_victim_for(victim_spec: str, target: TargetBehaviour, task: str | None = None) -> tuple[Victim, str, str]:
+    """The victim of ``victim_spec``, its own task (``task``, for a victim that does not record one) and the
+    task whose environment ``target`` is sought in."""
+    victim = load_victim(victim_spec)
+    task = task or victim.meta.get("task")
+    if task is None:
+        raise RatError(f"victim '{victim_spec}' does not record its task; pass --task with the task it was trained on")
+    return victim, task, check_task(target.env_task(check_task(task)))
+
+
+def attack_config(method: str, preset: str = "cpu", budget: int | None = None, steps: int | None = None,
+                  target: str = "reach", **overrides):
+    """The configuration of attack ``method`` under a named preset, with overrides of its fields."""
+    return attack_preset(get_attack(method).config, preset, budget, steps, target, **overrides)
+
+
+def train_attack(method: str, setup: AttackSetup, config, out: str | Path) -> AttackReport:
+    """Train attack ``method`` (from the registry) with ``config``; resumable from ``out``."""
+    return get_attack(method).train(setup, config, Path(out))
+
+
+def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
+                          progress: bool = True, video_episodes=2) -> dict:
+    """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim."""
+    meta = saved_attack_meta(run)
+    victim = load_victim(meta["victim"])
+    perturbation, meta = load_attack(run, victim)
+    target = get_target(meta["target"])
+    cfg = meta.get("rat", meta)  # RAT keeps its budget in its config, the baselines at the top level
+    threat = ThreatModel(cfg["epsilon"], cfg["norm"])
+    env = make_task(meta["task"], seed=seed, render_mode="rgb_array" if video else None)
+    attacked = evaluate_attack(victim, perturbation, env, target, threat, episodes, seed, video=video,
+                               progress=progress, video_episodes=video_episodes)
+    clean = evaluate(numpy_policy(victim), make_task(meta["task"], seed=seed), episodes, seed, target=target)
+    return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"],
+            "method": meta.get("method", "rat"), "epsilon": threat.epsilon, "norm": threat.norm, "attack": attacked,
+            "clean": clean}
+
+
+def film_attack(run: str | Path, path: str | Path, seed: int = 0, episodes: int = 10, show: int = 2) -> list[bool]:
+    """Film ``show`` of ``episodes`` attacked episodes into one video, those that reach the target first.
+
+    Returns whether each filmed episode reached the target. The episodes are the same ones (by seed)
+    in both passes, so what is filmed is what was counted.
+    """
+    counted = evaluate_saved_attack(run, episodes, seed, progress=False)["attack"].result.successes
+    picks = ([i for i, ok in enumerate(counted) if ok] + [i for i, ok in enumerate(counted) if not ok])[:show]
+    filmed = evaluate_saved_attack(run, max(picks) + 1, seed, video=path, progress=False, video_episodes=picks)
+    return [filmed["attack"].result.successes[i] for i in picks]
