@@ -28,7 +28,7 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 
 zoo: $(STAMP)
-	$(BIN)/rat victim zoo --jobs 2
+	$(BIN)/rat victim zoo --jobs 2 --dest src/rat/zoo
 
 clean:
 	rm -rf $(VENV) runs

@@ -135,18 +135,17 @@ def test_intention_bad_inputs(capsys, tmp_path):
 
 @pytest.mark.slow
 def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
-    from dataclasses import replace
-
     from rat.agents.sac import SACConfig
     from rat.experiments.presets import rat_config
     from rat.experiments.runner import attack_setup, train_attack
     from rat.preferences.reward_model import RewardModelConfig
 
     cfg = rat_config("cpu", budget=40, steps=900, adversary_hidden=32, adversary_every=100, adversary_batch=64,
-                     weighting_every=300, eval_every=450, eval_episodes=1, final_eval_episodes=2, checkpoint_every=500)
-    cfg = replace(cfg, pebble=replace(cfg.pebble, sac=SACConfig(hidden=32, layers=2, batch_size=32), seed_steps=100,
-                                      unsupervised_steps=300, per_round=20, feedback_every=300,
-                                      reward=RewardModelConfig(hidden=32, layers=2, max_epochs=3)))
+                     weighting_every=300, eval_every=450, eval_episodes=1, final_eval_episodes=2, checkpoint_every=500,
+                     pebble_overrides=dict(sac=SACConfig(hidden=32, layers=2, batch_size=32), seed_steps=100,
+                                           unsupervised_steps=300, feedback_every=300,
+                                           reward=RewardModelConfig(hidden=32, layers=2, max_epochs=3)))
+    assert cfg.pebble.per_round == 20 and cfg.pebble.sac.batch_size == 32  # 2 rounds of 20 by 90% of the run
     report = train_attack("rat", attack_setup("zoo:drawer-open-v3", "reach", progress=False), cfg, tmp_path / "run")
     assert report.labels == 40 and report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
     assert report.max_perturbation <= 0.1 + 1e-9

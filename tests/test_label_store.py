@@ -80,6 +80,8 @@ def test_export_and_import_keep_labels_and_provenance(tmp_path, rng):
     assert copied.y.tolist() == original.y.tolist()
     assert copied.rows[0]["imported_from"].endswith("export.sqlite#1")
     assert copied.rows[0]["created_at"] == original.rows[0]["created_at"]
+    with LabelStore(tmp_path / "b.sqlite") as b:  # the round accounting came along, under the new name
+        assert [(r["round"], r["step"], r["asked"], r["answered"]) for r in b.rounds("sa-rl-run")] == [(0, 10, 3, 3)]
     with pytest.raises(RatError, match="already exists"):
         LabelStore(tmp_path / "a.sqlite").export_to(tmp_path / "export.sqlite")
 
@@ -89,3 +91,14 @@ def test_a_file_that_is_not_a_store_is_a_one_line_error(tmp_path):
     bad.write_bytes(b"this is not a database" * 100)
     with pytest.raises(RatError, match="not a readable label store"):
         LabelStore(bad)
+
+
+def test_reading_a_store_read_only_never_writes_to_it(tmp_path, rng):
+    with LabelStore(tmp_path / "l.sqlite") as store:
+        store.add(random_pairs(2, rng), np.array([1.0, 0.0]), {"type": "scripted"}, "run", round=0, step=1, asked=2)
+    before = (tmp_path / "l.sqlite").read_bytes()
+    with LabelStore(tmp_path / "l.sqlite", read_only=True) as store:
+        assert store.count() == 2 and store.rounds("run")[0]["asked"] == 2
+        with pytest.raises(Exception):
+            store.add(random_pairs(1, rng), np.array([1.0]), {"type": "scripted"}, "run")
+    assert (tmp_path / "l.sqlite").read_bytes() == before

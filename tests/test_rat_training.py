@@ -1,5 +1,6 @@
 """RAT end to end on the small point environment: it learns, and a killed run resumes exactly."""
 
+import csv
 import os
 import signal
 import subprocess
@@ -71,12 +72,24 @@ def test_a_killed_run_resumes_and_reproduces_the_finished_runs_artefacts(tmp_pat
 
     out = tmp_path / "killed"
     script = KILLABLE.format(tests=str(Path(__file__).parent), out=str(out))
-    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "PYTHONHASHSEED": "0"})
-    deadline = time.time() + 300
-    while not (out / "checkpoint.json").exists() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+
+    def run_until(done) -> None:
+        proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "PYTHONHASHSEED": "0"})
+        deadline = time.time() + 300
+        while not done() and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.01)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+    def logged_rows() -> int:
+        path = out / "metrics.csv"
+        return len(path.read_text().splitlines()) - 1 if path.exists() else 0
+
+    # killed before its first checkpoint: a restart starts afresh and keeps none of the rows it logged
+    run_until(lambda: logged_rows() >= 2)
+    assert logged_rows() >= 2 and not (out / "checkpoint.json").exists(), "not killed before the first checkpoint"
+    # killed after a checkpoint: a restart continues from it
+    run_until(lambda: (out / "checkpoint.json").exists())
     assert (out / "checkpoint.json").exists() and not (out / "report.json").exists(), "the run was not cut short"
 
     resumed = train_rat(small_config(1200), setup(), out)
@@ -85,3 +98,9 @@ def test_a_killed_run_resumes_and_reproduces_the_finished_runs_artefacts(tmp_pat
     assert (resumed.attack_success_rate, resumed.labels) == (whole.attack_success_rate, whole.labels)
     for key in ("queries_asked", "adversary_updates", "weighting_updates"):
         assert resumed.details[key] == whole.details[key], key
+
+    def metrics(run):
+        with open(run / "metrics.csv") as f:
+            return [{k: v for k, v in row.items() if k != "steps_per_second"} for row in csv.DictReader(f)]
+
+    assert metrics(out) == metrics(tmp_path / "whole")  # no row twice, none missing

@@ -29,3 +29,20 @@ def test_zoo_timings_are_recorded():
     timings = json.loads((ZOO_DIR / "timings.json").read_text())
     for task in PAPER_TASKS:
         assert timings[task]["minutes"] > 0 and timings[task]["clean_success"] >= 0.95
+
+
+def test_zoo_victims_are_looked_up_in_the_users_zoo_first_and_regenerated_there(tmp_path, monkeypatch):
+    import shutil
+
+    from rat.victims.zoo import user_zoo_dir, zoo_path
+
+    monkeypatch.setenv("RAT_ZOO", str(tmp_path / "mine"))
+    assert user_zoo_dir() == tmp_path / "mine"
+    assert zoo_path("drawer-open-v3") == ZOO_DIR / "drawer-open-v3"  # nothing of the user's yet: the shipped one
+    (tmp_path / "mine").mkdir()
+    for suffix in (".json", ".safetensors"):
+        shutil.copy(ZOO_DIR / f"drawer-open-v3{suffix}", tmp_path / "mine" / f"drawer-open-v3{suffix}")
+    assert zoo_path("drawer-open-v3") == tmp_path / "mine" / "drawer-open-v3"
+    monkeypatch.delenv("RAT_ZOO")
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    assert user_zoo_dir() == tmp_path / "data" / "rat" / "zoo"

@@ -73,6 +73,13 @@ def config_from_options(ctx: click.Context, config_cls: type, base=None, assignm
     return with_values(base if base is not None else config_cls(), values)
 
 
+def resolve_device(name: str):
+    """:func:`rat.device.resolve_device`, imported when needed (it imports torch)."""
+    from rat.device import resolve_device as resolve
+
+    return resolve(name)
+
+
 # --- the command group ------------------------------------------------------------------------------
 
 
@@ -168,9 +175,12 @@ def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) ->
     from rat.envs import check_task
     from rat.victims.training import VictimConfig, train_victim
 
+    from rat.runs import check_run_dir
+
     check_task(task)
     config = config_from_options(ctx, VictimConfig, base=VictimConfig(task=task), assignments=assignments)
-    out = out or Path("runs") / f"victim-{task}-{method}-{seed}"
+    resolve_device(config.device)  # a missing GPU is said before anything is written
+    out = check_run_dir(out or Path("runs") / f"victim-{task}-{method}-{seed}")
     path, result = train_victim(config, out, progress=True, tensorboard=tensorboard)
     click.echo(f"victim: {path}.safetensors")
     click.echo(f"clean evaluation on {task}: {result.summary()}")
@@ -194,8 +204,12 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
     from rat.victims import check_compatible
     from rat.victims.base import numpy_policy
 
+    from rat.runs import check_writable_file
+
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
+    if video is not None:
+        check_writable_file(video)
     behaviour = get_target(target)
     v, _, env_task = load_victim_for(victim_spec, behaviour, task)
     env = make_task(env_task, seed=seed, render_mode="rgb_array" if video else None)
@@ -213,7 +227,8 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
 @victim.command("zoo")
 @click.option("--task", "tasks", multiple=True, help="only these tasks (repeatable) [the paper's eight]")
 @click.option("--jobs", type=int, default=2, show_default=True, help="parallel processes")
-@click.option("--dest", type=click.Path(path_type=Path), default=None, help="zoo folder [the package's zoo]")
+@click.option("--dest", type=click.Path(path_type=Path), default=None,
+              help="zoo folder [your zoo: $RAT_ZOO or ~/.local/share/rat/zoo, searched before the shipped one]")
 @click.option("--work-dir", type=click.Path(path_type=Path), default=Path("runs/zoo"), show_default=True)
 @config_option(VICTIM, "demo_episodes", type=int)
 @config_option(VICTIM, "bc_updates", type=int)
@@ -223,7 +238,8 @@ def victim_zoo(ctx, tasks, jobs, dest, work_dir, **_) -> None:
     """Regenerate the victim zoo (behaviour cloning, default settings) and record the timings."""
     from rat.envs import check_task
     from rat.victims.training import VictimConfig
-    from rat.victims.zoo import ZOO_DIR, regenerate_zoo
+    from rat.runs import check_writable_dir
+    from rat.victims.zoo import regenerate_zoo, user_zoo_dir
 
     for t in tasks:
         check_task(t)
@@ -235,7 +251,10 @@ def victim_zoo(ctx, tasks, jobs, dest, work_dir, **_) -> None:
                    f"over {row['episodes']} episodes")
 
     config = config_from_options(ctx, VictimConfig, base=VictimConfig(method="bc"))
-    regenerate_zoo(config, list(tasks) or None, work_dir, dest or ZOO_DIR, jobs, on_done=report)
+    dest = check_writable_dir(dest or user_zoo_dir(), "--dest")
+    check_writable_dir(work_dir, "--work-dir")
+    click.echo(f"victims go to {dest}")
+    regenerate_zoo(config, list(tasks) or None, work_dir, dest, jobs, on_done=report)
 
 
 # --- intention policies and labels -------------------------------------------------------------
@@ -277,8 +296,11 @@ def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignmen
     """Train an intention policy for TARGET from scripted preference labels; resumes with the same --out."""
     from rat.preferences.intention import IntentionConfig, train_intention
 
+    from rat.runs import check_run_dir
+
     config = config_from_options(ctx, IntentionConfig, assignments=assignments)
-    out = out or Path("runs") / f"intention-{task}-{target}-{budget}-{seed}"
+    resolve_device(config.device)  # a missing GPU is said before anything is written
+    out = check_run_dir(out or Path("runs") / f"intention-{task}-{target}-{budget}-{seed}")
     report = train_intention(config, out, progress=True, tensorboard=tensorboard)
     lo, hi = report.target_success_ci
     click.echo(f"target success of the intention policy: {100 * report.target_success_rate:.1f}% "
@@ -295,11 +317,10 @@ def labels() -> None:
 
 
 def _open_store(path: Path):
+    """An existing label store, read-only: listing and exporting never write to it."""
     from rat.preferences.store import LabelStore
 
-    if not path.exists():
-        raise RatError(f"no label store at '{path}'; a run keeps its labels in <run>/labels.sqlite")
-    return LabelStore(path)
+    return LabelStore(path, read_only=True)
 
 
 @labels.command("list")
@@ -334,9 +355,10 @@ def labels_export(store, dest, source) -> None:
 @click.argument("src", type=click.Path(path_type=Path))
 @click.option("--source", default=None, help="file the imported labels under this source name")
 def labels_import(store, src, source) -> None:
-    """Add every label of store file SRC to STORE (created if missing)."""
+    """Add every label of store file SRC to STORE (created if missing), with its query-round accounting."""
     from rat.preferences.store import LabelStore
 
+    _open_store(src).close()  # SRC is checked before STORE is created
     with LabelStore(store) as s:
         click.echo(f"imported {s.import_from(src, source)} labels into {store}")
 
@@ -350,7 +372,6 @@ def attack() -> None:
 
 
 THREAT = "rat.attacks.threat:ThreatModel"
-PEBBLE = "rat.preferences.pebble:PebbleConfig"
 
 
 @attack.command("train")
@@ -366,9 +387,14 @@ PEBBLE = "rat.preferences.pebble:PebbleConfig"
               help="a label store to learn r̂ from (SA-RL, PA-AD with --reward labels; e.g. a RAT run's labels.sqlite)")
 @config_option(THREAT, "epsilon", type=float, help="budget, raw observation units")
 @config_option(THREAT, "norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]))
-@config_option(PEBBLE, "budget", type=int, help="preference labels (queries) in all (RAT)")
-@click.option("--preset", type=click.Choice(["cpu", "paper"]), default="cpu", show_default=True,
-              help="cpu: 5e4 steps, batches of 256 (this machine); paper: 1e6 steps, batch 1024 (a GPU)")
+@click.option("--budget", type=int, default=None,
+              help="preference labels (queries) in all (RAT) [the preset's: 3000; smoke 40]")
+@click.option("--seed-steps", type=int, default=None, help="RAT: uniform random steps first [the preset's]")
+@click.option("--pretrain-steps", type=int, default=None,
+              help="RAT: state-entropy pre-training steps; the first labels and adversary update follow [the preset's]")
+@click.option("--preset", type=click.Choice(["cpu", "paper", "smoke"]), default="cpu", show_default=True,
+              help="cpu: 5e4 steps, batches of 256 (this machine); paper: 1e6 steps, batch 1024 (a GPU); "
+              "smoke: minutes, not results")
 @click.option("--steps", type=int, default=None, help="environment steps [the preset's]")
 @click.option("--ablation", type=click.Choice(["none", "no-weighting", "no-combined", "no-intention"]), default=None,
               help="RAT: the paper's table 4 (see the README)")
@@ -383,12 +409,14 @@ PEBBLE = "rat.preferences.pebble:PebbleConfig"
 @click.option("--video/--no-video", default=True, show_default=True,
               help="film two of ten attacked episodes, those reaching the target first")
 @click.option("--tensorboard", is_flag=True)
-def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, preset, steps, ablation,
-                 kl_form, hypergradient, actor_steps, device, seed, assignments, out, video, tensorboard) -> None:
+def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, seed_steps,
+                 pretrain_steps, preset, steps, ablation, kl_form, hypergradient, actor_steps, device, seed, assignments,
+                 out, video, tensorboard) -> None:
     """Train an attack (RAT by default) and evaluate it; re-running with the same --out resumes it."""
     from rat.attacks import ThreatModel, check_reward, get_attack
     from rat.configs import parse_assignment, with_values
     from rat.experiments.runner import attack_config, attack_setup, film_attack, train_attack
+    from rat.runs import check_run_dir
 
     attack = get_attack(method)
     reward = check_reward(attack, reward or attack.rewards[0])
@@ -400,6 +428,11 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
     if unknown:
         raise RatError(f"--{unknown[0].replace('_', '-')} does not apply to attack '{method}'; drop it")
     overrides |= {k: v for k, v in {"epsilon": epsilon, "norm": norm, "seed": seed}.items() if k in fields}
+    warm_up = {k: v for k, v in {"seed_steps": seed_steps, "unsupervised_steps": pretrain_steps}.items() if v is not None}
+    if warm_up:
+        if "pebble" not in fields:
+            raise RatError(f"--seed-steps and --pretrain-steps do not apply to attack '{method}'; drop them")
+        overrides["pebble_overrides"] = warm_up
     threat = ThreatModel(epsilon, norm)
     setup = attack_setup(victim_spec, target, threat, seed, reward, labels_path, task, tensorboard=tensorboard)
     config = attack_config(method, preset, budget, steps, target, **overrides)
@@ -407,8 +440,11 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
         if config is None:
             raise RatError(f"attack '{method}' has no settings; drop --set")
         config = with_values(config, dict(parse_assignment(type(config), a) for a in assignments))
+    if getattr(config, "device", None) is not None:
+        resolve_device(config.device)  # a missing GPU is said before anything is written
     name = victim_spec.replace(":", "-").replace("/", "_")
-    out = out or Path("runs") / f"{method}{'' if reward == attack.rewards[0] else '-' + reward}-{name}-{target}-{seed}"
+    out = check_run_dir(out or Path("runs") / f"{method}{'' if reward == attack.rewards[0] else '-' + reward}-{name}-"
+                                              f"{target}-{seed}")
     report = train_attack(method, setup, config, out)
     click.echo(f"{method} ({reward}) {report.summary()}")
     if video:
@@ -425,24 +461,35 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
 @click.option("--episodes", type=int, default=30, show_default=True, help="the paper uses 30")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--video", type=click.Path(path_type=Path), default=None, help="record the first two attacked episodes")
+@click.option("--record", type=click.Path(path_type=Path), default=None,
+              help="write every perturbation's size to this CSV (episode, step, norm, epsilon, within_budget)")
 @click.option("--json", "as_json", is_flag=True)
-def attack_eval(run, episodes, seed, video, as_json) -> None:
+def attack_eval(run, episodes, seed, video, record, as_json) -> None:
     """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
     from rat.experiments.runner import evaluate_saved_attack
+    from rat.runs import check_writable_file
 
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
+    for path, what in ((video, "--video"), (record, "--record")):
+        if path is not None:
+            check_writable_file(path, what)
     r = evaluate_saved_attack(run, episodes, seed, video)
     attacked, clean = r["attack"], r["clean"]
+    if record is not None:
+        attacked.write_records(record)
     if as_json:
         click.echo(json.dumps({k: v for k, v in r.items() if k not in ("attack", "clean")} | {
             "attack_success_rate": attacked.result.success_rate, "attack_success_ci": attacked.result.success_ci,
             "clean_target_success_rate": clean.success_rate, "max_perturbation": attacked.max_perturbation,
-            "mean_perturbation": attacked.mean_perturbation, "within_budget": attacked.within_budget}))
+            "mean_perturbation": attacked.mean_perturbation, "within_budget": attacked.within_budget,
+            "observations": attacked.steps, "record": str(record) if record else None}))
         return
     click.echo(f"{r['method']} against {r['victim']} on {r['task']}, target '{r['target']}'")
     click.echo(f"  attacked: {attacked.summary()}")
     click.echo(f"  clean:    {clean.summary()}")
+    if record is not None:
+        click.echo(f"every perturbation's size: {record} ({len(attacked.records)} observations)")
 
 
 @cli.group()

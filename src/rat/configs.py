@@ -104,14 +104,20 @@ def parse_assignment(cls: type, text: str) -> tuple[str, Any]:
 
 
 def with_values(config: Any, values: dict[str, Any]) -> Any:
-    """``config`` with fields replaced by dotted path (``{"pebble.sac.batch_size": 256}``)."""
+    """``config`` with fields replaced by dotted path (``{"pebble.sac.batch_size": 256}``).
+
+    All changes to one dataclass are made at once, so its checks see them together (a shorter
+    warm-up and a shorter run, say).
+    """
+    here: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
     for path, value in values.items():
-        config = _replace_path(config, path.split("."), value, path)
-    return config
-
-
-def _replace_path(config: Any, parts: list[str], value: Any, path: str) -> Any:
-    _field(type(config), parts[0], path)
-    if len(parts) > 1:
-        value = _replace_path(getattr(config, parts[0]), parts[1:], value, path)
-    return dataclasses.replace(config, **{parts[0]: value})
+        head, _, rest = path.partition(".")
+        _field(type(config), head, path)
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            here[head] = value
+    for head, sub in nested.items():
+        here[head] = with_values(here.get(head, getattr(config, head)), sub)
+    return dataclasses.replace(config, **here) if here else config

@@ -13,7 +13,7 @@ Cadence: an evaluation at every multiple of ``eval_every`` steps; a checkpoint a
 multiple of ``checkpoint_every`` steps, or, with ``checkpoint_at_boundary``, at the first
 episode end after it (so a resumed run starts a fresh episode exactly as the uninterrupted one
 did), and one when the loop ends. Resuming loads the run's checkpoint into the trainer and
-drops metric rows logged after it.
+drops metric rows logged after it (all of them when there is no checkpoint yet).
 """
 
 from __future__ import annotations
@@ -97,6 +97,7 @@ class TrainingLoop:
         """Load the run's checkpoint into the trainer if there is one; returns whether it did."""
         run = self.run_dir
         if not run.has_checkpoint():
+            run.logger.truncate_after(-1)  # killed before its first checkpoint: start afresh, rows and all
             return False
         state, meta = load_checkpoint(run.checkpoint_path, self.trainer.kind)
         self.trainer.load_state_dict(state, meta)

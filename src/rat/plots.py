@@ -39,11 +39,13 @@ def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path:
 
 def plot_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
     """Evaluation success over environment steps, from a run's metrics.csv."""
-    plt = pyplot()
+    if not Path(metrics_csv).exists():  # nothing was logged
+        return None
     with open(metrics_csv, newline="") as f:
         rows = [r for r in csv.DictReader(f) if r.get("eval_success_rate")]
     if not rows:
         return None
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.2))
     ax.plot([float(r["step"]) for r in rows], [100 * float(r["eval_success_rate"]) for r in rows], marker="o")
     ax.set_xlabel("environment steps")

@@ -5,15 +5,25 @@ Layout of a run directory::
     config.json          the resolved configuration (written once; a resume checks it)
     metrics.csv          one row per logged step, columns grow as metrics appear
     checkpoint.json/.safetensors   the latest checkpoint (atomic replace)
+    run.lock             held (flock) by the process working in the run; names it
     tensorboard/         only with tensorboard=True
+
+A directory is claimed before anything is written to it: it must be new, empty, or a run of
+ours (it holds ``config.json``), and no other process may hold its lock.
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
 import json
+import os
 import random
+import socket
 import subprocess
+import sys
+import tempfile
+import time
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -138,12 +148,97 @@ def _defaults(config: Any) -> Any:
         return None
 
 
+def check_writable_dir(directory: str | Path, what: str = "--out") -> Path:
+    """Create ``directory`` (and its parents) if needed and check that files can be written in it."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / f".rat-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except FileExistsError as exc:
+        raise RatError(f"{what} '{directory}' is a file, not a folder; give a folder") from exc
+    except NotADirectoryError as exc:
+        raise RatError(f"{what} '{directory}' lies under a file; give a folder path") from exc
+    except OSError as exc:
+        raise RatError(f"cannot write in {what} '{directory}' ({exc.strerror or exc}); give a writable folder") from exc
+    return directory
+
+
+def check_writable_file(path: str | Path, what: str = "--video") -> Path:
+    """Check before any work that ``path`` can be written (its folder is made if missing)."""
+    path = Path(path)
+    if path.is_dir():
+        raise RatError(f"{what} '{path}' is a folder; give a file name")
+    check_writable_dir(path.parent if str(path.parent) else Path("."), f"the folder of {what}")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise RatError(f"cannot overwrite {what} '{path}' (read-only); give another file name")
+    return path
+
+
+def check_run_dir(directory: str | Path, what: str = "--out") -> Path:
+    """Check, without creating or writing anything, that ``directory`` can hold a run: it is a new folder
+    in a writable place, an empty folder, or a run of ours; otherwise a one-line error."""
+    directory = Path(directory)
+    if directory.exists():
+        if not directory.is_dir():
+            raise RatError(f"{what} '{directory}' is a file, not a folder; give a folder")
+        if any(p.name != "run.lock" for p in directory.iterdir()) and not (directory / "config.json").exists():
+            raise RatError(f"{what} '{directory}' is not empty and is not a rat run (it has no config.json); give a "
+                           "new or empty folder")
+        existing = directory
+    else:
+        existing = directory.parent
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        if not existing.is_dir():
+            raise RatError(f"{what} '{directory}' lies under a file ('{existing}'); give a folder path")
+    try:
+        with tempfile.TemporaryFile(dir=existing):  # a real write: permissions, read-only file systems, quotas
+            pass
+    except OSError as exc:
+        raise RatError(f"cannot write in {what} '{directory}' ('{existing}': {exc.strerror or exc}); give a "
+                       "writable folder") from exc
+    return directory
+
+
+_HELD_LOCKS: dict[Path, int] = {}  # run directory -> the lock file this process holds open
+
+
+def claim_run_dir(directory: Path) -> None:
+    """Lock ``directory`` for this process (released when it exits), or a one-line error naming the holder.
+
+    A process may claim its own run again (a resumed run in the same process).
+    """
+    key = directory.resolve()
+    if key in _HELD_LOCKS:
+        return
+    fd = os.open(directory / "run.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 4096).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise RatError(f"run directory '{directory}' is in use by {holder}; wait for it to finish, or give "
+                       "another --out") from None
+    os.ftruncate(fd, 0)
+    command = " ".join(Path(a).name if i == 0 else a for i, a in enumerate(sys.argv))[:200]
+    os.write(fd, f"process {os.getpid()} on {socket.gethostname()} ({command}) since "
+                 f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode())
+    _HELD_LOCKS[key] = fd
+
+
 class Run:
-    """A run directory. ``Run(dir, config)`` starts it or, if it already holds the same config, resumes it."""
+    """A run directory. ``Run(dir, config)`` starts it or, if it already holds the same config, resumes it.
+
+    The directory is refused if it is a file, not writable, not empty and not a run of ours, or
+    in use by another process (see :func:`claim_run_dir`).
+    """
 
     def __init__(self, directory: str | Path, config: Any, tensorboard: bool = False):
-        self.dir = Path(directory)
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.dir = check_run_dir(directory)
+        check_writable_dir(self.dir)
+        claim_run_dir(self.dir)
         self.config = to_jsonable(config)
         config_path = self.dir / "config.json"
         if config_path.exists():

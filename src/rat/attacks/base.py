@@ -70,6 +70,13 @@ class AttackSetup:
     progress: bool = True
     tensorboard: bool = False
 
+    def __post_init__(self):
+        if self.threat.epsilon == 0:
+            raise RatError("epsilon 0 allows no perturbation, so there is nothing to attack with; give --epsilon > 0 "
+                           "(rat victim eval measures the clean victim)")
+        if self.reward not in REWARDS:
+            raise RatError(f"unknown reward source '{self.reward}'; use one of: {', '.join(REWARDS)}")
+
 
 @runtime_checkable
 class Attack(Protocol):
@@ -141,7 +148,15 @@ def check_reward(attack: Attack, reward: str) -> str:
 def saved_attack_meta(run: str | Path) -> dict[str, Any]:
     """The metadata of the attack saved in a run directory (``<run>/adversary.json``)."""
     path = Path(run)
-    return read_meta(path / "adversary" if path.is_dir() else path)["meta"]
+    path = path / "adversary" if path.is_dir() else path
+    meta = read_meta(path).get("meta")
+    budget = meta.get("rat", meta) if isinstance(meta, dict) else {}
+    missing = [k for k in ("target",) if not isinstance(meta, dict) or k not in meta]
+    missing += [k for k in ("epsilon", "norm") if not isinstance(budget, dict) or k not in budget]
+    if missing:
+        raise RatError(f"'{path}.json' lacks {', '.join(missing)}: it was edited or not written by rat; "
+                       "train the attack again (same --out resumes)")
+    return meta
 
 
 def load_attack(run: str | Path, victim: Victim) -> tuple[Perturbation, dict[str, Any]]:

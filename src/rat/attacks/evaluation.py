@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import csv
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -25,10 +26,21 @@ class AttackEval:
     max_perturbation: float
     mean_perturbation: float
     steps: int
+    records: list[tuple[int, int, float]] = field(default_factory=list)  #: (episode, step, norm) of every observation
 
     @property
     def within_budget(self) -> bool:
         return self.max_perturbation <= self.threat.epsilon * (1 + 1e-6) + 1e-12
+
+    def write_records(self, path: str | Path) -> Path:
+        """Every perturbation's size, one CSV row per observation the victim saw: an audit of the budget."""
+        path = Path(path)
+        with open(path, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["episode", "step", "norm", "epsilon", "within_budget"])
+            bound = self.threat.epsilon * (1 + 1e-6) + 1e-12
+            writer.writerows((e, t, repr(n), self.threat.epsilon, int(n <= bound)) for e, t, n in self.records)
+        return path
 
     def summary(self) -> str:
         return (f"{self.result.summary()}; perturbation {self.threat.norm} mean {self.mean_perturbation:.4f}, "
@@ -58,4 +70,4 @@ def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, ta
     result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress,
                       video_episodes=video_episodes)
     norms = np.asarray(attacked.norms)
-    return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms))
+    return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms), list(attacked.records))

@@ -87,6 +87,7 @@ class RATConfig:
                      "horizon", "eval_every", "eval_episodes", "final_eval_episodes", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        self.pebble.check_steps(self.total_steps, "RAT")  # the adversary starts at the first query round
 
     @property
     def threat(self) -> ThreatModel:

@@ -143,6 +143,9 @@ class PPOConfig:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
         if not self.learning_rate > 0:
             raise RatError(f"learning-rate must be positive, got {self.learning_rate}")
+        if self.total_steps < self.n_steps:
+            raise RatError(f"{self.total_steps} steps end before PPO's first update (after a rollout of "
+                           f"n_steps={self.n_steps}); give --steps >= {self.n_steps} or --preset smoke")
 
 
 def _policy_kwargs(cfg: PPOConfig) -> dict:

@@ -123,7 +123,8 @@ class AttackedObservation(gym.ObservationWrapper):
     """Show the agent s̃ = s + ε·P(Δ(s)) while the environment's true state is untouched.
 
     ``info["true_obs"]`` carries the unperturbed observation, ``info["perturbation_norm"]`` the
-    size of this step's perturbation; :attr:`norms` collects every one.
+    size of this step's perturbation; :attr:`norms` collects every one, and :attr:`records` each
+    with its episode (counted from 0) and episode step (0 for the observation after a reset).
 
     Args:
         env: any gymnasium environment with a ``Box`` observation space.
@@ -135,6 +136,8 @@ class AttackedObservation(gym.ObservationWrapper):
         super().__init__(env)
         self.perturbation, self.threat = perturbation, threat
         self.norms: list[float] = []
+        self.records: list[tuple[int, int, float]] = []
+        self._episode, self._t = -1, 0
         self._last_true: np.ndarray | None = None
 
     def observation(self, obs: np.ndarray) -> np.ndarray:
@@ -142,14 +145,17 @@ class AttackedObservation(gym.ObservationWrapper):
         delta = torch.as_tensor(self.perturbation(obs), dtype=torch.float64)
         attacked = self.threat.perturb(torch.as_tensor(obs, dtype=torch.float64), delta).numpy()
         self.norms.append(float(self.threat.size(attacked - obs)))
+        self.records.append((self._episode, self._t, self.norms[-1]))
         return attacked.astype(np.asarray(obs).dtype)
 
     def reset(self, **kwargs):
+        self._episode, self._t = self._episode + 1, 0
         obs, info = super().reset(**kwargs)
         info = dict(info, true_obs=self._last_true, perturbation_norm=self.norms[-1])
         return obs, info
 
     def step(self, action):
+        self._t += 1
         obs, reward, terminated, truncated, info = super().step(action)
         info = dict(info, true_obs=self._last_true, perturbation_norm=self.norms[-1])
         return obs, reward, terminated, truncated, info

@@ -7,11 +7,13 @@
   to 90% of the run (8 rounds at 50,000 steps), at most 30 reward-model epochs per round, and the
   adversary kept at the end is the snapshot (one per evaluation) that the final r̂ scores best.
   PPO (SA-RL, PA-AD) with SB3's default learning rate and minibatch.
-- ``smoke`` (grids only): minutes, not results; for trying a grid or a cluster end to end.
+- ``smoke``: minutes, not results (3,000 RAT steps with 40 labels after a 1,000-step warm-up;
+  one PPO rollout); for trying a command, a grid or a cluster end to end.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -25,44 +27,59 @@ from rat.preferences.reward_model import RewardModelConfig
 if TYPE_CHECKING:
     from rat.experiments.table1 import Cell
 
-PRESETS = ("cpu", "paper")  #: presets of a single attack
+PRESETS = ("cpu", "paper", "smoke")  #: presets of a single attack
+
+# smoke: minutes, not results
+SMOKE_STEPS = {"rat": 3_000, "ppo": 2_048}
+SMOKE_LABELS = 40
+SMOKE_PEBBLE = {"seed_steps": 500, "unsupervised_steps": 500, "feedback_every": 1_000}
+SMOKE_EVALUATION = {"eval_every": 1_000, "eval_episodes": 1, "final_eval_episodes": 2}
+
+
+def _check_preset(preset: str) -> None:
+    if preset not in PRESETS:
+        raise RatError(f"unknown preset '{preset}'; use one of: {', '.join(PRESETS)}")
 
 
 def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None = None, target: str = "reach",
-               **overrides) -> RATConfig:
-    """A :class:`RATConfig` from a preset, a label budget (default: PEBBLE's) and overrides of any field."""
-    if preset not in PRESETS:
-        raise RatError(f"unknown preset '{preset}'; use one of: {', '.join(PRESETS)}")
-    pebble = PebbleConfig()
-    budget = pebble.budget if budget is None else budget
+               pebble_overrides: dict | None = None, **overrides) -> RATConfig:
+    """A :class:`RATConfig` from a preset, a label budget (default: the preset's), overrides of PEBBLE's
+    fields (the warm-up, say; applied before the preset sizes its query rounds) and of any RAT field."""
+    _check_preset(preset)
+    pebble_overrides = {**(SMOKE_PEBBLE if preset == "smoke" else {}), **(pebble_overrides or {})}
     weighting_every = 1000 if target == "reach" else 2000  # the released schedule: manipulation vs opposite
     if preset == "paper":
+        pebble = replace(PebbleConfig(), **pebble_overrides)
         settings = dict(total_steps=steps or 1_000_000, weighting_every=weighting_every,
-                        pebble=replace(pebble, budget=budget))
+                        pebble=replace(pebble, budget=pebble.budget if budget is None else budget))
         return RATConfig(**(settings | overrides))
-    total = steps or 50_000
-    first, last = pebble.seed_steps + pebble.unsupervised_steps, max(pebble.seed_steps + pebble.unsupervised_steps,
-                                                                      int(0.9 * total))
+    default = PebbleConfig()
+    pebble = replace(default, sac=replace(default.sac, batch_size=256), reward=RewardModelConfig(max_epochs=30))
+    pebble = replace(pebble, **pebble_overrides)
+    budget = (SMOKE_LABELS if preset == "smoke" else default.budget) if budget is None else budget
+    total = steps or (SMOKE_STEPS["rat"] if preset == "smoke" else 50_000)
+    first, last = pebble.warm_up, max(pebble.warm_up, int(0.9 * total))
     rounds = (last - first) // pebble.feedback_every + 1
-    per_round = max(1, -(-budget // rounds))  # ceil: the budget is spent by 90% of the run
-    pebble = replace(pebble, sac=replace(pebble.sac, batch_size=256), budget=budget, per_round=per_round,
-                     reward=RewardModelConfig(max_epochs=30))
+    per_round = pebble_overrides.get("per_round") or max(1, -(-budget // rounds))  # ceil: spent by 90% of the run
+    pebble = replace(pebble, budget=budget, per_round=per_round)
     # Departure: keep the snapshot whose attack the final r̂ scores best (see RATConfig.select); short
     # CPU runs of PEBBLE are not monotone, and the attacker can judge its own attack only through r̂.
     settings = dict(total_steps=total, adversary_batch=256, weighting_every=weighting_every, pebble=pebble,
-                    select="reward")
+                    select="reward") | (SMOKE_EVALUATION if preset == "smoke" else {})
     return RATConfig(**(settings | overrides))
 
 
 def ppo_preset(preset: str = "cpu", steps: int | None = None, **overrides) -> PPOConfig:
-    """PPO budgets by name: ``paper`` (table 6, 10⁶ steps) or ``cpu`` (this machine)."""
+    """PPO budgets by name: ``paper`` (table 6, 10⁶ steps), ``cpu`` (this machine) or ``smoke`` (one rollout)."""
+    _check_preset(preset)
     if preset == "paper":
         return replace(PPOConfig(total_steps=steps or 1_000_000), **overrides)
-    if preset == "cpu":
-        # Departure for a CPU: table 6's learning rate (5e-5) and minibatch (32) need ~10⁶ steps;
-        # with 5×10⁴ steps we take SB3's defaults for both.
-        return replace(PPOConfig(total_steps=steps or 50_000, learning_rate=3e-4, batch_size=64), **overrides)
-    raise RatError(f"unknown preset '{preset}'; use one of: cpu, paper")
+    # Departure for a CPU: table 6's learning rate (5e-5) and minibatch (32) need ~10⁶ steps;
+    # with 5×10⁴ steps we take SB3's defaults for both.
+    if preset == "smoke":
+        return replace(PPOConfig(total_steps=steps or SMOKE_STEPS["ppo"], learning_rate=3e-4, batch_size=64,
+                                 **SMOKE_EVALUATION), **overrides)
+    return replace(PPOConfig(total_steps=steps or 50_000, learning_rate=3e-4, batch_size=64), **overrides)
 
 
 @dataclass(frozen=True)
@@ -98,25 +115,27 @@ GRID_PRESETS = {
     # This project's 2-core CPU machine: 5×10⁴ steps per learner.
     "cpu": GridPreset("cpu", "cpu", 50_000, {"manipulation": 3000, "opposite": 1000}, "cpu", 50_000),
     # Minutes, not results: for trying a grid or a cluster end to end.
-    "smoke": GridPreset("smoke", "cpu", 3_000, {"manipulation": 40, "opposite": 40}, "cpu", 2_048, episodes=2,
-                        overrides={"eval_every": 1_000, "eval_episodes": 1},
-                        pebble_overrides={"seed_steps": 500, "unsupervised_steps": 500, "feedback_every": 1_000}),
+    "smoke": GridPreset("smoke", "smoke", SMOKE_STEPS["rat"], {"manipulation": SMOKE_LABELS, "opposite": SMOKE_LABELS},
+                        "smoke", SMOKE_STEPS["ppo"], episodes=SMOKE_EVALUATION["final_eval_episodes"]),
 }
 
 
 def attack_preset(config_class: type | None, preset: str = "cpu", budget: int | None = None, steps: int | None = None,
-                  target: str = "reach", **overrides):
-    """The configuration (an instance of ``config_class``) under preset ``preset``, with overrides of its fields.
+                  target: str = "reach", pebble_overrides: dict | None = None, **overrides):
+    """The configuration (an instance of ``config_class``) under preset ``preset``, with overrides of its fields
+    (``pebble_overrides`` go to RAT's PEBBLE settings).
 
     RAT's and PPO's settings have presets; any other attack's configuration (a plugin's, say) is its
     class's defaults with the overrides.
     """
     if config_class is RATConfig:
-        return rat_config(preset, budget, steps, target, **overrides)
+        return rat_config(preset, budget, steps, target, pebble_overrides, **overrides)
     if config_class is PPOConfig:
         return ppo_preset(preset, steps, **overrides)
     if config_class is None:
         return None
-    if preset not in PRESETS:
-        raise RatError(f"unknown preset '{preset}'; use one of: {', '.join(PRESETS)}")
+    _check_preset(preset)
+    fields = {f.name for f in dataclasses.fields(config_class)}
+    if preset == "smoke" and "final_eval_episodes" in fields:
+        overrides = {"final_eval_episodes": SMOKE_EVALUATION["final_eval_episodes"]} | overrides
     return config_class(**overrides)

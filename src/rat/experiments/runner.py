@@ -61,6 +61,9 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
                           progress: bool = True, video_episodes=2) -> dict:
     """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim."""
     meta = saved_attack_meta(run)
+    if "victim" not in meta or "task" not in meta:
+        raise RatError(f"the attack in '{run}' does not record its victim and task (trained from Python with a "
+                       "victim object, or its adversary.json was edited); evaluate it with rat.attacks.evaluate_attack")
     victim = load_victim(meta["victim"])
     perturbation, meta = load_attack(run, victim)
     target = get_target(meta["target"])

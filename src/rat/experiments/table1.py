@@ -26,7 +26,7 @@ import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 import dataclasses
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable, Iterable
@@ -147,8 +147,8 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
     if method == "rat":
         config = attack_config("rat", preset.rat_preset, preset.labels_for(cell), preset.rat_steps, target,
                                epsilon=preset.epsilon, norm=preset.norm, seed=cell.seed,
-                               final_eval_episodes=preset.episodes, **preset.overrides)
-        config = replace(config, pebble=replace(config.pebble, **preset.pebble_overrides))
+                               pebble_overrides=preset.pebble_overrides, final_eval_episodes=preset.episodes,
+                               **preset.overrides)
     else:
         attack = get_attack(method)
         fields = {f.name for f in dataclasses.fields(attack.config)} if attack.config else set()

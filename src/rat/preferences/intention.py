@@ -55,6 +55,7 @@ class IntentionConfig:
                      "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        self.pebble.check_steps(self.total_steps, "the intention policy")
 
 
 @dataclass

@@ -77,6 +77,20 @@ class PebbleConfig:
         self.schedule  # validates budget and round settings
 
     @property
+    def warm_up(self) -> int:
+        """Steps before the target behaviour is first learnt: seed steps plus pre-training (the first round's step)."""
+        return self.seed_steps + self.unsupervised_steps
+
+    def check_steps(self, total_steps: int, what: str) -> None:
+        """A one-line error if ``total_steps`` end before the first query round, when nothing would be learnt."""
+        if total_steps <= self.warm_up or (self.budget == 0 and not self.oracle):
+            raise RatError(f"{total_steps} steps end before {what} learns anything: the first labels come at step "
+                           f"{self.warm_up} (seed steps {self.seed_steps} + pre-training {self.unsupervised_steps})"
+                           f"{' and the label budget is 0' if self.budget == 0 and not self.oracle else ''}; give "
+                           f"--steps > {self.warm_up}, a shorter warm-up (--seed-steps, --pretrain-steps) or "
+                           "--preset smoke")
+
+    @property
     def schedule(self) -> FeedbackSchedule:
         """Query rounds: the first right after pre-training, then every ``feedback_every`` steps."""
         return FeedbackSchedule(self.budget, self.seed_steps + self.unsupervised_steps, self.feedback_every,
@@ -191,10 +205,14 @@ class PebbleLearner:
         metrics = self.train_reward()
         metrics.update({"labels": float(self.store.count(self.source)), "queries_asked": float(self.asked)})
         if first:
-            self.agent.reset_critic()
-            for _ in range(self.config.reset_updates):
-                self.update()
+            self.reset_critic()
         return metrics
+
+    def reset_critic(self) -> None:
+        """PEBBLE's critic reset at the end of pre-training, then ``reset_updates`` SAC updates on the new reward."""
+        self.agent.reset_critic()
+        for _ in range(self.config.reset_updates):
+            self.update()
 
     def train_reward(self) -> dict[str, float]:
         """Train the ensemble on every label of this run, then relabel the whole replay buffer."""

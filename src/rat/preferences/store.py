@@ -81,17 +81,29 @@ class LabelSet:
 
 
 class LabelStore:
-    """A label store in one SQLite file (created if missing)."""
+    """A label store in one SQLite file (created if missing), or, with ``read_only``, an existing one
+    opened without writing anything to it."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, read_only: bool = False):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if read_only and not self.path.is_file():
+            raise RatError(f"no label store at '{self.path}'; a run keeps its labels in <run>/labels.sqlite")
         try:
-            self.db = sqlite3.connect(self.path, timeout=30, isolation_level=None)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=FULL")
-            self.db.executescript(_SCHEMA)
-            self.db.execute("INSERT OR IGNORE INTO store_info VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+            if read_only:
+                self.db = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True, timeout=30,
+                                          isolation_level=None)
+                found = self.db.execute("SELECT name FROM sqlite_master WHERE type='table'").fetchall()
+                if not {"store_info", "labels", "rounds"} <= {name for (name,) in found}:
+                    self.db.close()
+                    raise RatError(f"'{self.path}' is not a rat label store (it has no labels table); give the "
+                                   "labels.sqlite of a rat run")
+            else:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self.db = sqlite3.connect(self.path, timeout=30, isolation_level=None)
+                self.db.execute("PRAGMA journal_mode=WAL")
+                self.db.execute("PRAGMA synchronous=FULL")
+                self.db.executescript(_SCHEMA)
+                self.db.execute("INSERT OR IGNORE INTO store_info VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
             version = int(self.db.execute("SELECT value FROM store_info WHERE key='schema_version'").fetchone()[0])
         except sqlite3.DatabaseError as exc:
             raise RatError(f"'{self.path}' is not a readable label store ({exc}); give a rat label store (.sqlite)") from exc
@@ -210,12 +222,11 @@ class LabelStore:
             return out.count()
 
     def import_from(self, path: str | Path, source: str | None = None) -> int:
-        """Copy every label of another store into this one (new ids, provenance kept); returns how many."""
-        path = Path(path)
-        if not path.exists():
-            raise RatError(f"no label store at '{path}'")
-        with LabelStore(path) as other:
+        """Copy every label of another store into this one (new ids, provenance kept), with its query-round
+        accounting; returns how many. With ``source``, everything is filed under that name."""
+        with LabelStore(path, read_only=True) as other:
             labels = other.read()
+            rounds = [(src, r) for src, _ in other.sources() for r in other.rounds(src)]
             with self._transaction():
                 for i, row in enumerate(labels.rows):
                     row = dict(row)
@@ -223,6 +234,9 @@ class LabelStore:
                     if source is not None:
                         row["source"] = source
                     self._insert_row(row, labels.pairs.select([i]), labels.y[i], in_transaction=True)
+                for src, r in rounds:
+                    self.db.execute("INSERT OR REPLACE INTO rounds VALUES (?,?,?,?,?,?)",
+                                    (source or src, r["round"], r["step"], r["asked"], r["answered"], r["created_at"]))
             return len(labels)
 
     def _insert_row(self, row: dict, pair: SegmentPairs, y: float, in_transaction: bool = False) -> None:

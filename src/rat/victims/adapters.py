@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import pickle
 import pickletools
 import zipfile
 from pathlib import Path
@@ -170,13 +171,17 @@ def _sb3_box(data: dict[str, Any], key: str, path: Path) -> gym.spaces.Box:
     space = data.get(key, {})
     if not isinstance(space, dict) or "_shape" not in space or "low" not in space:
         raise RatError(f"'{path}' has a non-Box {key.replace('_', ' ')}; only Box observations and actions are supported")
-    shape = tuple(space["_shape"])
-    low = _parse_numpy_text([space.get("low"), space.get("low_repr")], shape)
-    high = _parse_numpy_text([space.get("high"), space.get("high_repr")], shape)
+    try:
+        shape = tuple(int(n) for n in space["_shape"])
+        low = _parse_numpy_text([space.get("low"), space.get("low_repr")], shape)
+        high = _parse_numpy_text([space.get("high"), space.get("high_repr")], shape)
+        dtype = np.dtype(space.get("dtype", "float32"))
+    except (TypeError, ValueError) as exc:
+        raise RatError(f"the {key.replace('_', ' ')} recorded in '{path}' is malformed ({exc}); save the model with "
+                       "model.save() and try again") from exc
     if low is None or high is None:
         raise RatError(f"the bounds of the {key.replace('_', ' ')} in '{path}' are not readable; "
                        "wrap the model as a ModuleVictim in Python instead")
-    dtype = np.dtype(space.get("dtype", "float32"))
     return gym.spaces.Box(low.astype(dtype), high.astype(dtype), shape, dtype=dtype)
 
 
@@ -193,9 +198,20 @@ def load_sb3_victim(path: str | Path, name: str | None = None) -> ModuleVictim:
             state = torch.load(io.BytesIO(z.read("policy.pth")), map_location="cpu", weights_only=True)
     except FileNotFoundError as exc:
         raise RatError(f"no Stable-Baselines3 model at '{path}'; check the path") from exc
-    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, RuntimeError, EOFError) as exc:
+    except pickle.UnpicklingError as exc:
+        raise RatError(f"the policy.pth in '{path}' holds Python objects besides tensors, which rat never loads "
+                       "(loading them could run code from the file); save the model with Stable-Baselines3's "
+                       "model.save(), which stores the weights only") from exc
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, UnicodeDecodeError, RuntimeError, EOFError,
+            ValueError) as exc:
         raise RatError(f"'{path}' is not a readable Stable-Baselines3 model file ({exc.__class__.__name__}); "
                        "save it with model.save() and try again") from exc
+    if not isinstance(data, dict):
+        raise RatError(f"the 'data' entry of '{path}' is a JSON {type(data).__name__}, not the object "
+                       "Stable-Baselines3 writes; save the model with model.save() and try again")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise RatError(f"the policy.pth in '{path}' is not a state dict of named tensors (it holds a "
+                       f"{type(state).__name__}); save the model with model.save() and try again")
     obs_space, act_space = _sb3_box(data, "observation_space", path), _sb3_box(data, "action_space", path)
     kwargs = data.get("policy_kwargs", {})
     if "actor.latent_pi.0.weight" in state:  # SAC

@@ -82,6 +82,9 @@ class VictimConfig:
             raise RatError(f"stop-success must lie in (0, 1], got {self.stop_success}")
         if self.random_steps < 0 or self.demo_noise < 0:
             raise RatError("random-steps and demo-noise must not be negative")
+        if self.method == "sac" and self.total_steps <= self.random_steps:
+            raise RatError(f"{self.total_steps} steps end before SAC's first update (after {self.random_steps} random "
+                           f"steps); give --total-steps > {self.random_steps} or --set random_steps=...")
 
 
 # --- behaviour cloning -------------------------------------------------------------------------------

@@ -3,11 +3,16 @@
 Each is ``zoo/<task>.safetensors`` + ``zoo/<task>.json``, made by ``rat victim zoo`` (behaviour
 cloning of the scripted expert with DART noise: minutes per task on a CPU, against hours of SAC;
 see the README). ``zoo/timings.json`` records what each took to make.
+
+``zoo:<task>`` looks first in the user's zoo (``$RAT_ZOO``, else ``$XDG_DATA_HOME/rat/zoo``, else
+``~/.local/share/rat/zoo``), where ``rat victim zoo`` writes, then in the shipped one; the package
+itself is written only when asked (``--dest``).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -19,21 +24,37 @@ from rat.errors import RatError
 from rat.victims.adapters import load_rat_victim
 from rat.victims.base import ModuleVictim
 
-ZOO_DIR = Path(__file__).resolve().parent.parent / "zoo"
+ZOO_DIR = Path(__file__).resolve().parent.parent / "zoo"  #: the shipped zoo
 ZOO_PREFIX = "zoo:"
 
 
-def zoo_tasks(directory: Path = ZOO_DIR) -> list[str]:
-    """Tasks with a shipped victim."""
-    return sorted(p.stem for p in directory.glob("*-v3.json"))
+def user_zoo_dir() -> Path:
+    """Where ``rat victim zoo`` writes by default, and where ``zoo:<task>`` looks first."""
+    if os.environ.get("RAT_ZOO"):
+        return Path(os.environ["RAT_ZOO"])
+    data = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(data) / "rat" / "zoo"
 
 
-def zoo_path(task: str, directory: Path = ZOO_DIR) -> Path:
-    path = directory / task
-    if not path.with_suffix(".json").exists():
-        raise RatError(f"no zoo victim for '{task}'; zoo victims: {', '.join(zoo_tasks(directory)) or 'none'} "
-                       "(regenerate with `rat victim zoo`)")
-    return path
+def zoo_dirs() -> list[Path]:
+    """The zoos ``zoo:<task>`` searches, in order: the user's, then the shipped one."""
+    return [user_zoo_dir(), ZOO_DIR]
+
+
+def zoo_tasks(directory: Path | None = None) -> list[str]:
+    """Tasks with a zoo victim (in ``directory``, or in any zoo)."""
+    directories = [directory] if directory is not None else zoo_dirs()
+    return sorted({p.stem for d in directories for p in Path(d).glob("*-v3.json")})
+
+
+def zoo_path(task: str, directory: Path | None = None) -> Path:
+    """The checkpoint of ``task``'s zoo victim: the first zoo that has one."""
+    for d in [directory] if directory is not None else zoo_dirs():
+        path = Path(d) / task
+        if path.with_suffix(".json").exists():
+            return path
+    raise RatError(f"no zoo victim for '{task}'; zoo victims: {', '.join(zoo_tasks(directory)) or 'none'} "
+                   "(regenerate with `rat victim zoo`)")
 
 
 def load_zoo_victim(task: str) -> ModuleVictim:
@@ -60,14 +81,14 @@ def _make_one(args: tuple) -> dict:
 
 
 def regenerate_zoo(config, tasks: list[str] | None = None, work_dir: str | Path = "runs/zoo",
-                   dest: str | Path = ZOO_DIR, jobs: int = 2, min_success: float = 0.95, on_done=None) -> list[dict]:
+                   dest: str | Path | None = None, jobs: int = 2, min_success: float = 0.95, on_done=None) -> list[dict]:
     """Make a victim for each task with ``config`` (its ``task`` field is replaced), in ``jobs`` processes.
 
     Writes ``dest/<task>.{safetensors,json}`` and ``dest/timings.json``; raises if a victim's
     clean success is below ``min_success``.
     """
     tasks = tasks or sorted(PAPER_TASKS)
-    dest = Path(dest)
+    dest = Path(dest) if dest is not None else user_zoo_dir()
     dest.mkdir(parents=True, exist_ok=True)
     jobs_args = [(replace(config, task=t), str(work_dir), str(dest)) for t in tasks]
     rows = []
