@@ -164,7 +164,7 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
 
 def test_attack_bad_inputs(capsys, tmp_path):
     assert_user_error(*run(capsys, "attack", "train", "--victim", "zoo:nope-v3", "--out", str(tmp_path / "a"))[::2],
-                      "no zoo victim for 'nope-v3'")
+                      "no zoo victim 'nope-v3'")
     assert_user_error(*run(capsys, "attack", "train", "--epsilon", "-0.1", "--out", str(tmp_path / "b"))[::2],
                       "epsilon must be a finite number >= 0")
     assert_user_error(*run(capsys, "attack", "train", "--budget", "-3", "--out", str(tmp_path / "c"))[::2],
@@ -283,3 +283,15 @@ def test_device_auto_picks_what_torch_sees_and_a_missing_gpu_is_one_line(capsys,
         assert_user_error(*run(capsys, "victim", "train", "--task", "drawer-close-v3", "--device", "cuda",
                                "--bc-updates", "1", "--demo-episodes", "1", "--out", str(tmp_path / "v"))[::2],
                           "torch sees no GPU")
+
+
+@pytest.mark.parametrize("budget, steps, spend_by", [(1000, 50_000, 0.9), (9000, 50_000, 0.5), (3000, 100_000, 0.4),
+                                                     (40, 3_000, 0.9)])
+def test_the_cpu_preset_spends_exactly_the_label_budget_by_the_stated_step(budget, steps, spend_by):
+    from rat.experiments.presets import rat_config
+
+    config = rat_config("cpu" if steps > 3000 else "smoke", budget, steps, spend_by=spend_by)
+    rounds = config.pebble.schedule.rounds()
+    assert sum(n for _, n in rounds) == budget and config.pebble.budget == budget
+    assert rounds[0][0] == config.pebble.warm_up  # the first round right after pre-training
+    assert rounds[-1][0] <= max(config.pebble.warm_up, spend_by * steps)  # ... the last by the stated step

@@ -1,5 +1,7 @@
 """Teacher, query strategies, Bradley-Terry, reward ensemble, state entropy, schedule."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -50,6 +52,13 @@ def test_boltzmann_teacher_follows_the_sigmoid_of_the_return_gap():
     labels = ScriptedTeacher(TeacherConfig(beta=1.0)).label(pairs_with_returns(np.zeros(n), np.ones(n)), rng)
     expected = 1 / (1 + np.exp(-1.0))
     assert stats.binomtest(int(labels.y.sum()), n, expected).pvalue > 0.001
+
+
+def test_exact_ties_are_labelled_equal_when_asked_and_first_preferred_as_b_pref_does():
+    pairs = pairs_with_returns([0.0, 1.0, 2.0, 0.0], [0.0, 3.0, 2.0, 0.5])
+    assert ScriptedTeacher(TeacherConfig(ties=True)).label(pairs, np.random.default_rng(0)).y.tolist() == [0.5, 1.0, 0.5, 1.0]
+    b_pref = ScriptedTeacher().label(pairs, np.random.default_rng(0))
+    assert b_pref.y.tolist() == [0.0, 1.0, 0.0, 1.0]
 
 
 def test_skip_and_equal_thresholds():
@@ -146,6 +155,20 @@ def test_reward_ensemble_learns_to_rank_held_out_pairs():
     correct = int((np.sign(learned) == np.sign(truth)).sum())
     p = stats.binomtest(correct, 500, 0.5, alternative="greater").pvalue
     assert correct / 500 > 0.85 and p < 1e-10, f"held-out accuracy {correct / 500:.3f}, p={p:.2g}, {metrics}"
+
+
+def test_a_round_can_be_capped_in_gradient_steps_whatever_the_labels_held():
+    rng = np.random.default_rng(0)
+    pairs = synthetic_pairs(1000, rng)
+    y = ScriptedTeacher().label(pairs, rng).y
+    config = RewardModelConfig(hidden=8, layers=1, max_epochs=50, batch_size=64, stop_accuracy=1.1)
+    capped = RewardEnsemble(4, 1, replace(config, max_updates=20))
+    metrics = capped.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, y, rng)
+    assert metrics["reward_updates"] == 20 and metrics["reward_epochs"] == 2  # 16 batches, then 4 of the next epoch
+    steps = [o.state_dict()["state"][0]["step"].item() for o in capped.optimizers]
+    assert steps == [20.0] * config.members  # every member took exactly 20 Adam steps
+    uncapped = RewardEnsemble(4, 1, replace(config, max_epochs=2))
+    assert uncapped.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, y, rng)["reward_updates"] == 32
 
 
 def test_reward_is_tanh_bounded_and_the_mean_of_members():

@@ -17,6 +17,8 @@ from scipy import stats
 from point_env import BESIDE, HORIZON, PointGoal, point_victim
 from rat.agents.sac import SACConfig
 from rat.attacks import AttackSetup, ThreatModel, evaluate_attack
+from rat.checkpoint import load_checkpoint
+from rat.errors import RatError
 from rat.attacks.rat import RATConfig, train_rat
 from rat.attacks.threat import random_delta
 from rat.preferences.pebble import PebbleConfig
@@ -104,3 +106,17 @@ def test_a_killed_run_resumes_and_reproduces_the_finished_runs_artefacts(tmp_pat
             return [{k: v for k, v in row.items() if k != "steps_per_second"} for row in csv.DictReader(f)]
 
     assert metrics(out) == metrics(tmp_path / "whole")  # no row twice, none missing
+
+
+@pytest.mark.slow
+def test_imitating_the_best_intention_policy_keeps_it_scores_it_by_r_hat_and_checkpoints_it(tmp_path):
+    report = train_rat(small_config(1500, imitate="best", imitate_episodes=2), setup(), tmp_path / "run")
+    with open(tmp_path / "run" / "metrics.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("imitated_step")]
+    assert [int(float(r["step"])) for r in rows] == [500, 1000, 1500]  # every evaluation once r̂ exists
+    assert all(float(r["imitated_step"]) <= float(r["step"]) for r in rows)
+    state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
+    assert int(state["best"]["step"]) == int(float(rows[-1]["imitated_step"]))
+    assert report.details["adversary_updates"] > 0
+    with pytest.raises(RatError, match="imitate must be current or best"):
+        small_config(imitate="peak")

@@ -2,6 +2,7 @@
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -92,5 +93,15 @@ def test_a_run_directory_refuses_a_different_configuration(tmp_path):
 def test_bad_training_options_are_rejected():
     with pytest.raises(RatError, match="unknown victim method"):
         VictimConfig(method="magic")
+    with pytest.raises(RatError, match="no scripted expert to learn from; use --method sac"):
+        VictimConfig(task="Walker2d-v5", method="bc")
     with pytest.raises(RatError, match="total-steps must be positive"):
         VictimConfig(total_steps=-5)
+
+
+def test_a_sac_victim_trains_on_a_locomotion_task_too(tmp_path):
+    cfg = replace(TINY_SAC, task="HalfCheetah-v5", total_steps=300, random_steps=100, checkpoint_every=300)
+    path, result = train_victim(cfg, tmp_path / "run", progress=False)
+    victim = load_victim(str(path))
+    assert victim.meta["task"] == "HalfCheetah-v5" and victim.observation_space.shape == (17,)
+    assert result.episodes == 1 and np.isfinite(result.mean_return)

@@ -46,3 +46,26 @@ def test_zoo_victims_are_looked_up_in_the_users_zoo_first_and_regenerated_there(
     monkeypatch.delenv("RAT_ZOO")
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
     assert user_zoo_dir() == tmp_path / "data" / "rat" / "zoo"
+
+
+def test_zoo_names_pick_the_sac_victim_first_and_name_each_kind(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from rat.cli import main
+    from rat.errors import RatError
+    from rat.victims.zoo import zoo_path, zoo_victims
+
+    monkeypatch.setenv("RAT_ZOO", str(tmp_path))
+    assert zoo_path("faucet-close-v3") == ZOO_DIR / "faucet-close-v3"  # only the behaviour clone so far
+    for suffix in (".json", ".safetensors"):  # a SAC victim in the user's zoo (its weights: any victim's)
+        shutil.copy(ZOO_DIR / f"faucet-close-v3{suffix}", tmp_path / f"faucet-close-v3@sac{suffix}")
+    assert zoo_path("faucet-close-v3") == tmp_path / "faucet-close-v3@sac"
+    assert zoo_path("faucet-close-v3@sac") == tmp_path / "faucet-close-v3@sac"
+    assert zoo_path("faucet-close-v3@bc") == ZOO_DIR / "faucet-close-v3"
+    assert zoo_victims()["faucet-close-v3"] == ["sac", "bc"] and zoo_victims()["drawer-open-v3"] == ["bc"]
+    assert load_victim("zoo:faucet-close-v3@sac").name == "zoo:faucet-close-v3@sac"
+    with pytest.raises(RatError, match="no zoo victim 'faucet-close-v3@ppo'.*faucet-close-v3@sac"):
+        zoo_path("faucet-close-v3@ppo")
+    assert main(["list", "tasks"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("faucet-close-v3"))
+    assert "zoo:faucet-close-v3@sac, zoo:faucet-close-v3@bc" in line

@@ -115,14 +115,15 @@ def list_group() -> None:
 def list_tasks(show_all: bool) -> None:
     """Meta-World v3 tasks (the paper's eight, with their opposites and zoo victims)."""
     from rat.envs import PAPER_TASKS, all_tasks
-    from rat.victims import zoo_tasks
+    from rat.victims import zoo_victims
 
-    zoo = set(zoo_tasks())
-    click.echo(f"{'task':<18} {'opposite':<18} zoo victim")
+    zoo = zoo_victims()
+    click.echo(f"{'task':<18} {'opposite':<18} zoo victims (zoo:<task> is the first)")
     for task, opposite in sorted(PAPER_TASKS.items()):
-        click.echo(f"{task:<18} {opposite:<18} {'zoo:' + task if task in zoo else '-'}")
+        names = ", ".join(f"zoo:{task}@{m}" for m in zoo.get(task, [])) or "-"
+        click.echo(f"{task:<18} {opposite:<18} {names}")
     if show_all:
-        click.echo("\nall Meta-World v3 tasks: " + ", ".join(all_tasks()))
+        click.echo("\nall tasks (Meta-World v3, then Gymnasium MuJoCo locomotion): " + ", ".join(all_tasks()))
 
 
 @list_group.command("targets")
@@ -130,8 +131,9 @@ def list_targets() -> None:
     """Registered target behaviours."""
     from rat.envs import list_targets as targets
 
+    width = max(len(t.name) for t in targets())
     for t in targets():
-        click.echo(f"{t.name:<10} {t.description}")
+        click.echo(f"{t.name:<{width}}  {t.description}")
 
 
 @list_group.command("attacks")
@@ -389,6 +391,8 @@ THREAT = "rat.attacks.threat:ThreatModel"
 @config_option(THREAT, "norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]))
 @click.option("--budget", type=int, default=None,
               help="preference labels (queries) in all (RAT) [the preset's: 3000; smoke 40]")
+@click.option("--spend-by", type=float, default=None,
+              help="RAT (cpu, smoke): spend the label budget by this fraction of the run [0.9]")
 @click.option("--seed-steps", type=int, default=None, help="RAT: uniform random steps first [the preset's]")
 @click.option("--pretrain-steps", type=int, default=None,
               help="RAT: state-entropy pre-training steps; the first labels and adversary update follow [the preset's]")
@@ -409,7 +413,7 @@ THREAT = "rat.attacks.threat:ThreatModel"
 @click.option("--video/--no-video", default=True, show_default=True,
               help="film two of ten attacked episodes, those reaching the target first")
 @click.option("--tensorboard", is_flag=True)
-def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, seed_steps,
+def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, spend_by, seed_steps,
                  pretrain_steps, preset, steps, ablation, kl_form, hypergradient, actor_steps, device, seed, assignments,
                  out, video, tensorboard) -> None:
     """Train an attack (RAT by default) and evaluate it; re-running with the same --out resumes it."""
@@ -433,6 +437,10 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
         if "pebble" not in fields:
             raise RatError(f"--seed-steps and --pretrain-steps do not apply to attack '{method}'; drop them")
         overrides["pebble_overrides"] = warm_up
+    if spend_by is not None:
+        if "pebble" not in fields:
+            raise RatError(f"--spend-by does not apply to attack '{method}'; drop it")
+        overrides["spend_by"] = spend_by
     threat = ThreatModel(epsilon, norm)
     setup = attack_setup(victim_spec, target, threat, seed, reward, labels_path, task, tensorboard=tensorboard)
     config = attack_config(method, preset, budget, steps, target, **overrides)

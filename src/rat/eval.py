@@ -68,7 +68,9 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
     """Run ``policy`` for ``episodes`` episodes of ``env``.
 
     Args:
-        policy: observation -> action (numpy).
+        policy: observation -> action (numpy); if it has ``reset()`` and ``observe(reward)`` (a
+            :class:`~rat.victims.base.VictimPolicy` of a sequence victim), they are called at each
+            episode's start and after each step.
         env: a gymnasium environment whose ``info`` carries what ``target.success`` reads.
         seed: episode ``i`` is reset with ``seed + i``, so two evaluations see the same episodes.
         target: the success test (and nothing else) is taken from it; default: ``info["success"]``.
@@ -81,6 +83,8 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
     frames: list[np.ndarray] = []
     for ep in tqdm(range(episodes), desc="evaluating", disable=not progress, leave=False):
         obs, info = env.reset(seed=seed + ep)
+        if hasattr(policy, "reset"):
+            policy.reset()
         success_fn = target.episode_success() if target is not None else (lambda info: bool(info["success"]))
         total, first_step, t, done = 0.0, -1, 0, False
         ok_now = False
@@ -88,6 +92,8 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
             if video is not None and ep in filmed and t % video_every == 0:
                 frames.append(env.render())
             obs, reward, terminated, truncated, info = env.step(policy(obs))
+            if hasattr(policy, "observe"):
+                policy.observe(reward)
             total += reward
             ok_now = success_fn(info)
             if ok_now and first_step < 0:

@@ -101,6 +101,12 @@ class Imitation:
         delta = adversary(obs, noise) if params is None else functional_call(adversary, params, (obs, noise))
         return self.victim.act(self.threat.perturb(obs, delta))
 
+    @torch.no_grad()
+    def gap(self, adversary: Adversary, obs: torch.Tensor) -> float:
+        """The imitation gap: mean ‖μ_ν(s̃) − tanh μ_θ(s)‖₂ over ``obs`` with the adversary's deterministic Δ."""
+        target_mean, _ = intention_gaussian(self.intention, obs)
+        return (self.perturbed_action(adversary, None, obs, None) - target_mean).norm(dim=-1).mean().item()
+
     def kl(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None
            ) -> torch.Tensor:
         """KL(π_{ν∘α}(·|s) ‖ π_θ(·|s)) for each state of the batch, ``[B]``."""

@@ -18,6 +18,8 @@ Ablations (the paper's table 4), by ``RATConfig.ablation``:
 
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -70,6 +72,8 @@ class RATConfig:
     eval_episodes: int = 10  #: episodes per evaluation during training
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
     select: str = "last"  #: "last" adversary (the paper's), or the snapshot whose attack scores best under r̂ ("reward")
+    imitate: str = "current"  #: the adversary imitates the "current" π_θ (the paper's), or the "best" so far under r̂
+    imitate_episodes: int = 3  #: π_θ's episodes per evaluation that score it under r̂ (imitate="best")
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
@@ -79,6 +83,10 @@ class RATConfig:
             raise RatError(f"unknown ablation '{self.ablation}'; use one of: {', '.join(ABLATIONS)}")
         if self.select not in ("last", "reward"):
             raise RatError(f"select must be last or reward, got '{self.select}'")
+        if self.imitate not in ("current", "best") or self.imitate_episodes <= 0:
+            raise RatError(f"imitate must be current or best (with imitate-episodes > 0), got '{self.imitate}'")
+        if self.imitate == "best" and self.pebble.oracle:
+            raise RatError("imitate=best scores π_θ with r̂, which an oracle run does not learn; use imitate=current")
         if self.select == "reward" and self.pebble.oracle:
             raise RatError("select=reward scores snapshots with r̂, which an oracle run does not learn; use select=last")
         if self.kl_form not in ("exact", "released") or self.hypergradient not in ("exact", "batch-mean"):
@@ -141,7 +149,7 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=list(adversary.parameters()))  # nothing else may accumulate a gradient
     optimizer.step()
-    return {"adversary_loss": loss.item()}
+    return {"adversary_loss": loss.item(), "imitation_gap": objective.gap(adversary, obs)}
 
 
 def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimizer, adversary: Adversary,
@@ -197,6 +205,7 @@ class RATTrainer:
         self.behaviour = CombinedBehaviourPolicy(cfg.horizon, mode)
         self.use_weighting = cfg.ablation == "none"
         self.counters = {"adversary_updates": 0, "weighting_updates": 0}
+        self.best: dict | None = None  # imitate="best": frozen copies of π_θ's actor and critic, its temperature
         self.finished = False
         self.obs: np.ndarray | None = None  # None between episodes
 
@@ -205,9 +214,39 @@ class RATTrainer:
         return self.learner.step
 
     def objective(self) -> Imitation:
-        """What the adversary imitates now (the critic is replaced when PEBBLE resets it)."""
+        """What the adversary imitates now: π_θ as it is (the critic is replaced when PEBBLE resets it), or,
+        with ``imitate="best"``, the π_θ that scored best under r̂ at an evaluation."""
         agent, cfg = self.learner.agent, self.config
+        if self.best is not None:
+            return Imitation(self.victim, self.best["actor"], self.best["critic"], self.best["alpha"], cfg.threat,
+                             cfg.victim_std, cfg.kl_form)
         return Imitation(self.victim, agent.actor, agent.critic, agent.alpha, cfg.threat, cfg.victim_std, cfg.kl_form)
+
+    @torch.no_grad()
+    def intention_return(self, actor) -> float:
+        """Mean return under the current r̂ of ``actor``'s deterministic episodes (no true reward is used)."""
+        env, total = self.setup.make_env(self.config.seed + seeds.SELECTION_ENV), 0.0
+        for episode in range(self.config.imitate_episodes):
+            obs, _ = env.reset(seed=seeds.periodic(self.step) + episode)
+            done = False
+            while not done:
+                s = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+                action = actor(s).squeeze(0).cpu().numpy()
+                total += float(self.learner.ensemble.r_hat(obs.astype(np.float32), action))
+                obs, _, terminated, truncated, _ = env.step(action)
+                done = terminated or truncated
+        return total / self.config.imitate_episodes
+
+    def keep_best_intention(self) -> dict[str, float]:
+        """imitate="best": score π_θ and the kept one under today's r̂, on the same episodes; keep the better."""
+        agent = self.learner.agent
+        current = self.intention_return(agent.actor)
+        kept = self.intention_return(self.best["actor"]) if self.best is not None else -np.inf
+        if current >= kept:
+            self.best = {"actor": copy.deepcopy(agent.actor).requires_grad_(False),
+                         "critic": copy.deepcopy(agent.critic).requires_grad_(False),
+                         "alpha": agent.alpha.detach().clone(), "step": self.step}
+        return {"intention_learned_return": current, "imitated_step": float(self.best["step"])}
 
     # --- one environment step (the paper's Algorithm 1) -------------------------------------------
 
@@ -270,13 +309,16 @@ class RATTrainer:
         res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
         save_checkpoint(self.snapshots / f"adversary-{self.step}", "adversary-snapshot",
                         {"adversary": self.adversary.state_dict()}, {"step": self.step})
-        return {"eval_success_rate": res.result.success_rate, **self.counters}
+        kept = self.keep_best_intention() if self.config.imitate == "best" and self.learner.reward_ready else {}
+        return {"eval_success_rate": res.result.success_rate, **self.counters, **kept}
 
     def state_dict(self) -> dict:
         return {"learner": self.learner.state_dict(), "adversary": self.adversary.state_dict(),
                 "weighting": self.weighting.state_dict(), "adversary_opt": self.adversary_opt.state_dict(),
                 "weighting_opt": self.weighting_opt.state_dict(), "rng": rng_state(self.rng),
-                "counters": dict(self.counters)}
+                "counters": dict(self.counters)} | ({} if self.best is None else {"best": {
+                    "actor": self.best["actor"].state_dict(), "critic": self.best["critic"].state_dict(),
+                    "alpha": self.best["alpha"], "step": torch.tensor(self.best["step"])}})
 
     def load_state_dict(self, state: dict, meta: dict) -> None:
         self.learner.load_state_dict(state["learner"])
@@ -286,6 +328,13 @@ class RATTrainer:
         self.weighting_opt.load_state_dict(state["weighting_opt"])
         restore_rng_state(self.rng, state["rng"])
         self.counters.update({k: int(state["counters"][k]) for k in self.counters})
+        if "best" in state:
+            agent, b = self.learner.agent, state["best"]
+            self.best = {"actor": copy.deepcopy(agent.actor).requires_grad_(False),
+                         "critic": copy.deepcopy(agent.critic).requires_grad_(False),
+                         "alpha": torch.as_tensor(b["alpha"]).to(self.device), "step": int(b["step"])}
+            self.best["actor"].load_state_dict(b["actor"])
+            self.best["critic"].load_state_dict(b["critic"])
 
     def checkpoint_meta(self) -> dict:
         return {}

@@ -1,13 +1,7 @@
 """Environments, target behaviours and success tests."""
 
-from rat.envs.metaworld import (
-    HORIZON,
-    PAPER_TASKS,
-    MetaWorldTask,
-    all_tasks,
-    check_task,
-    make_task,
-)
+from rat.envs.locomotion import LOCOMOTION_TASKS, LocomotionTask, make_locomotion
+from rat.envs.metaworld import HORIZON, PAPER_TASKS, MetaWorldTask
 from rat.envs.targets import (
     REACH_GOAL,
     REACH_RADIUS,
@@ -17,9 +11,12 @@ from rat.envs.targets import (
     opposite_task,
     register_target,
 )
+from rat.envs.tasks import all_tasks, check_task, make_task
 
 __all__ = [
     "HORIZON",
+    "LOCOMOTION_TASKS",
+    "LocomotionTask",
     "PAPER_TASKS",
     "REACH_GOAL",
     "REACH_RADIUS",
@@ -29,6 +26,7 @@ __all__ = [
     "check_task",
     "get_target",
     "list_targets",
+    "make_locomotion",
     "make_task",
     "opposite_task",
     "register_target",

@@ -47,18 +47,6 @@ def all_tasks() -> list[str]:
     return sorted(ALL_V3_ENVIRONMENTS)
 
 
-def check_task(task: str) -> str:
-    """Return ``task`` if Meta-World knows it, else raise a one-line error naming the fix."""
-    tasks = all_tasks()
-    if task not in tasks:
-        import difflib
-
-        close = difflib.get_close_matches(task, tasks, n=1)
-        hint = f"did you mean '{close[0]}'? " if close else ""
-        raise RatError(f"unknown task '{task}': {hint}run `rat list tasks` for the names")
-    return task
-
-
 class MetaWorldTask(gym.Env):
     """One Meta-World v3 task with a goal re-drawn at every reset.
 
@@ -83,7 +71,11 @@ class MetaWorldTask(gym.Env):
     ):
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
 
-        check_task(task)
+        if task not in all_tasks():
+            from rat.envs.tasks import check_task
+
+            check_task(task)  # the one-line error with the closest name; or, for a locomotion task:
+            raise RatError(f"'{task}' is not a Meta-World task; make it with rat.envs.make_task")
         if render_mode is not None:
             os.environ.setdefault("MUJOCO_GL", "egl")
         cls = ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE[f"{task}-goal-observable"]

@@ -199,3 +199,8 @@ register_target(
     success=task_success,
     description="the victim's own task (its own reward and success): what a clean victim already does",
 )(task_reward)
+
+
+from rat.envs.locomotion import register_locomotion_targets  # noqa: E402 - needs register_target above
+
+register_locomotion_targets()

@@ -42,9 +42,15 @@ def _check_preset(preset: str) -> None:
 
 
 def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None = None, target: str = "reach",
-               pebble_overrides: dict | None = None, **overrides) -> RATConfig:
+               pebble_overrides: dict | None = None, spend_by: float = 0.9, **overrides) -> RATConfig:
     """A :class:`RATConfig` from a preset, a label budget (default: the preset's), overrides of PEBBLE's
-    fields (the warm-up, say; applied before the preset sizes its query rounds) and of any RAT field."""
+    fields (the warm-up, say; applied before the preset sizes its query rounds) and of any RAT field.
+
+    The ``cpu`` and ``smoke`` presets spend the budget in equal rounds every ``feedback_every`` steps
+    from the first round until ``spend_by`` of the run (the last round may be smaller).
+    """
+    if not 0 < spend_by <= 1:
+        raise RatError(f"spend-by must lie in (0, 1], got {spend_by}")
     _check_preset(preset)
     pebble_overrides = {**(SMOKE_PEBBLE if preset == "smoke" else {}), **(pebble_overrides or {})}
     weighting_every = 1000 if target == "reach" else 2000  # the released schedule: manipulation vs opposite
@@ -58,9 +64,9 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
     pebble = replace(pebble, **pebble_overrides)
     budget = (SMOKE_LABELS if preset == "smoke" else default.budget) if budget is None else budget
     total = steps or (SMOKE_STEPS["rat"] if preset == "smoke" else 50_000)
-    first, last = pebble.warm_up, max(pebble.warm_up, int(0.9 * total))
+    first, last = pebble.warm_up, max(pebble.warm_up, int(spend_by * total))
     rounds = (last - first) // pebble.feedback_every + 1
-    per_round = pebble_overrides.get("per_round") or max(1, -(-budget // rounds))  # ceil: spent by 90% of the run
+    per_round = pebble_overrides.get("per_round") or max(1, -(-budget // rounds))  # ceil: spent by `spend_by`
     pebble = replace(pebble, budget=budget, per_round=per_round)
     # Departure: keep the snapshot whose attack the final r̂ scores best (see RATConfig.select); short
     # CPU runs of PEBBLE are not monotone, and the attacker can judge its own attack only through r̂.
@@ -98,6 +104,7 @@ class GridPreset:
     labels_by_row: dict = field(default_factory=dict)  #: per paper row "scenario/task", overriding ``labels``
     overrides: dict = field(default_factory=dict)  #: other RATConfig fields (small runs)
     pebble_overrides: dict = field(default_factory=dict)  #: other PebbleConfig fields (small runs)
+    spend_by: float = 0.9  #: RAT spends its labels by this fraction of the run (cpu and smoke presets)
 
 
     def labels_for(self, cell: "Cell") -> int:
@@ -121,7 +128,7 @@ GRID_PRESETS = {
 
 
 def attack_preset(config_class: type | None, preset: str = "cpu", budget: int | None = None, steps: int | None = None,
-                  target: str = "reach", pebble_overrides: dict | None = None, **overrides):
+                  target: str = "reach", pebble_overrides: dict | None = None, spend_by: float = 0.9, **overrides):
     """The configuration (an instance of ``config_class``) under preset ``preset``, with overrides of its fields
     (``pebble_overrides`` go to RAT's PEBBLE settings).
 
@@ -129,7 +136,7 @@ def attack_preset(config_class: type | None, preset: str = "cpu", budget: int | 
     class's defaults with the overrides.
     """
     if config_class is RATConfig:
-        return rat_config(preset, budget, steps, target, pebble_overrides, **overrides)
+        return rat_config(preset, budget, steps, target, pebble_overrides, spend_by, **overrides)
     if config_class is PPOConfig:
         return ppo_preset(preset, steps, **overrides)
     if config_class is None:

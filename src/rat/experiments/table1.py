@@ -36,6 +36,7 @@ import numpy as np
 from rat.errors import RatError, require
 from rat.experiments.paper import PAPER_TABLE1
 from rat.experiments.presets import GridPreset
+from rat.runs import config_differences
 
 METHODS = ("pa-ad-oracle", "pa-ad", "sa-rl-oracle", "sa-rl", "random", "rat")  # the paper's column order
 METHOD_NAMES = {"pa-ad-oracle": "PA-AD (oracle)", "pa-ad": "PA-AD", "sa-rl-oracle": "SA-RL (oracle)",
@@ -147,7 +148,8 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
     if method == "rat":
         config = attack_config("rat", preset.rat_preset, preset.labels_for(cell), preset.rat_steps, target,
                                epsilon=preset.epsilon, norm=preset.norm, seed=cell.seed,
-                               pebble_overrides=preset.pebble_overrides, final_eval_episodes=preset.episodes,
+                               pebble_overrides=preset.pebble_overrides, spend_by=preset.spend_by,
+                               final_eval_episodes=preset.episodes,
                                **preset.overrides)
     else:
         attack = get_attack(method)
@@ -160,7 +162,9 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "ci_low": report.attack_success_ci[0], "ci_high": report.attack_success_ci[1],
            "episodes": report.episodes, "labels": report.labels,
            "max_perturbation": report.max_perturbation, "epsilon": preset.epsilon, "norm": preset.norm,
-           "preset": preset.name, "minutes": round((time.perf_counter() - started) / 60, 2)}
+           "preset": preset.name, "minutes": round((time.perf_counter() - started) / 60, 2),
+           "victim": setup.victim.name, "victim_method": setup.victim.meta.get("method", "?"),
+           "last_attack_success_rate": report.details.get("last_attack_success_rate", report.attack_success_rate)}
     tmp = directory / "result.json.tmp"
     tmp.write_text(json.dumps(row, indent=1))
     os.replace(tmp, directory / "result.json")  # written last: the cell is finished
@@ -197,7 +201,8 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
     grid_file = out / "grid.json"
     if grid_file.exists():
         before = json.loads(grid_file.read_text())
-        if before["preset"] != record["preset"]:
+        defaults = {f.name: f.default for f in dataclasses.fields(GridPreset) if f.default is not dataclasses.MISSING}
+        if config_differences(before["preset"], record["preset"], defaults):  # settings added since match at defaults
             raise RatError(f"'{out}' holds a grid with preset '{before['preset']['name']}' and other budgets; "
                            "give a new --out or the same preset")
         record["cells"] = sorted(set(before["cells"]) | set(record["cells"]))
@@ -292,7 +297,8 @@ def paper_row(cell_task: str, scenario: str) -> str:
 def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
     """``results.csv``, ``table1.md`` and ``curves-<task>.png`` from the finished cells."""
     fields = ["task", "scenario", "method", "seed", "attack_success_rate", "ci_low", "ci_high", "episodes", "labels",
-              "max_perturbation", "epsilon", "norm", "preset", "minutes"]
+              "max_perturbation", "epsilon", "norm", "preset", "minutes", "victim", "victim_method",
+              "last_attack_success_rate"]
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")
         writer.writeheader()

@@ -63,6 +63,7 @@ class PebbleConfig:
     updates_per_step: int = 1  #: SAC updates per environment step
     buffer_capacity: int = 1_000_000  #: replay buffer size
     oracle: bool = False  #: learn from the true target reward instead of labels (an upper bound; no queries)
+    normalize_reward: bool = False  #: standardise r̂ over the replay buffer at every round (mean 0, std 1)
 
     def __post_init__(self):
         for name in ("seed_steps", "unsupervised_steps", "reset_updates", "updates_per_step"):
@@ -123,6 +124,7 @@ class PebbleLearner:
         self.ensemble = RewardEnsemble(obs_dim, act_dim, config.reward).to(self.device)
         self.entropy_stats = RunningMeanStd()
         self.schedule = config.schedule
+        self.reward_stats = (0.0, 1.0)  # mean and std that r̂ is standardised with (normalize_reward)
         self.step = 0  # environment steps observed
         self.asked = 0  # queries counted against the budget
         self.round = 0  # query rounds done
@@ -152,7 +154,7 @@ class PebbleLearner:
         if self.config.oracle:
             reward = float(target_reward)
         else:
-            reward = float(self.ensemble.r_hat(obs, action)) if self.reward_ready else 0.0
+            reward = float(self.learned_reward(obs, action)) if self.reward_ready else 0.0
         self.buffer.add(obs, action, reward, next_obs, terminated)
         self.history.add(obs, action, target_reward, terminated or truncated)
         self.step += 1
@@ -160,6 +162,8 @@ class PebbleLearner:
         n = 0 if self.config.oracle else self.schedule.queries_at(self.step, self.asked)
         if n > 0:
             metrics.update(self.query_round(n))
+        elif self.config.oracle and self.step == self.schedule.first_step:
+            self.reset_critic()  # pre-training is over: forget the intrinsic reward's values, as a labelled run does
         if self.step >= self.config.seed_steps:
             for _ in range(self.config.updates_per_step):
                 metrics.update(self.update())
@@ -203,7 +207,8 @@ class PebbleLearner:
         first = self.round == 0
         self.round += 1
         metrics = self.train_reward()
-        metrics.update({"labels": float(self.store.count(self.source)), "queries_asked": float(self.asked)})
+        metrics.update({"labels": float(self.store.count(self.source)), "queries_asked": float(self.asked),
+                        "round_labels": float(len(labels.y)), "round_ties": float(np.sum(labels.y == 0.5))})
         if first:
             self.reset_critic()
         return metrics
@@ -221,8 +226,20 @@ class PebbleLearner:
             return {}
         p = labels.pairs
         metrics = self.ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, labels.y, self.rng)
-        self.buffer.relabel(lambda o, a, _: self.ensemble.r_hat(o, a))
+        if self.config.normalize_reward and len(self.buffer):
+            n = len(self.buffer)
+            raw = np.concatenate([self.ensemble.r_hat(self.buffer.obs[i:min(i + 8192, n)],
+                                                      self.buffer.action[i:min(i + 8192, n)])
+                                  for i in range(0, n, 8192)])
+            self.reward_stats = (float(raw.mean()), float(max(raw.std(), 1e-6)))
+            metrics |= {"reward_mean": self.reward_stats[0], "reward_std": self.reward_stats[1]}
+        self.buffer.relabel(lambda o, a, _: self.learned_reward(o, a))
         return metrics
+
+    def learned_reward(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """r̂ as the policy is trained on it: the ensemble mean, standardised when ``normalize_reward``."""
+        mean, std = self.reward_stats
+        return (self.ensemble.r_hat(obs, action) - mean) / std
 
     # --- checkpoints ----------------------------------------------------------------------------
 
@@ -233,6 +250,7 @@ class PebbleLearner:
             "buffer": self.buffer.state_dict(), "history": self.history.state_dict(),
             "entropy_stats": self.entropy_stats.state_dict(),
             "counters": {"step": self.step, "asked": self.asked, "round": self.round},
+            "reward_stats": np.asarray(self.reward_stats, np.float64),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -245,3 +263,5 @@ class PebbleLearner:
         self.entropy_stats.load_state_dict(state["entropy_stats"])
         c = state["counters"]
         self.step, self.asked, self.round = int(c["step"]), int(c["asked"]), int(c["round"])
+        if "reward_stats" in state:  # older checkpoints: r̂ was never standardised
+            self.reward_stats = tuple(float(x) for x in np.asarray(state["reward_stats"]))

@@ -30,6 +30,7 @@ class RewardModelConfig:
     lr: float = 3e-4  #: Adam learning rate
     batch_size: int = 128  #: labelled pairs per gradient step
     max_epochs: int = 200  #: epochs per training round, at most
+    max_updates: int | None = None  #: gradient steps per member per round, at most (None: no cap; rounds then grow with the labels)
     stop_accuracy: float = 0.97  #: stop a round once training accuracy exceeds this
 
 
@@ -87,11 +88,15 @@ class RewardEnsemble(nn.Module):
         cfg = self.config
         data = [torch.as_tensor(np.asarray(a, np.float32), device=self._device) for a in (obs0, act0, obs1, act1, y)]
         n = len(data[-1])
+        updates = 0
         for epoch in range(cfg.max_epochs):
             correct, total_loss = np.zeros(cfg.members), 0.0
+            batches = -(-n // cfg.batch_size)
+            if cfg.max_updates is not None:  # the last epoch may be cut short: a random part of the labels
+                batches = min(batches, cfg.max_updates - updates)
             for m, (net, opt) in enumerate(zip(self.nets, self.optimizers)):
                 order = torch.as_tensor(rng.permutation(n))
-                for start in range(0, n, cfg.batch_size):
+                for start in range(0, batches * cfg.batch_size, cfg.batch_size):
                     idx = order[start:start + cfg.batch_size]
                     o0, a0, o1, a1, yy = (d[idx] for d in data)
                     r0 = torch.tanh(net(torch.cat([o0, a0], -1))).squeeze(-1).sum(-1)
@@ -104,12 +109,14 @@ class RewardEnsemble(nn.Module):
                     predicted = (r1 > r0).float()
                     correct[m] += ((predicted == yy) | (yy == 0.5)).sum().item()
             self.epochs_run += 1
-            accuracy = correct.mean() / n
-            if accuracy > cfg.stop_accuracy:
+            updates += batches
+            seen = min(n, batches * cfg.batch_size)
+            accuracy = correct.mean() / seen
+            if accuracy > cfg.stop_accuracy or (cfg.max_updates is not None and updates >= cfg.max_updates):
                 break
         self.rounds += 1
-        return {"reward_train_accuracy": float(accuracy), "reward_loss": total_loss / (n * cfg.members),
-                "reward_epochs": float(epoch + 1)}
+        return {"reward_train_accuracy": float(accuracy), "reward_loss": total_loss / (seen * cfg.members),
+                "reward_epochs": float(epoch + 1), "reward_updates": float(updates)}
 
     def optimizer_state(self) -> dict:
         return {"optimizers": [o.state_dict() for o in self.optimizers], "rounds": self.rounds,

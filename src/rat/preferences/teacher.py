@@ -12,6 +12,9 @@ Noise options (B-Pref, Lee et al. 2021):
 - ``mistake``: probability of flipping a (non-equal) label.
 - ``skip``: drop the query when both segments' returns are below ``skip × scale``.
 - ``equal``: label 0.5 when ``|R¹ − R⁰| < equal × scale``.
+- ``ties``: label 0.5 when the returns are exactly equal (a target reward that is flat or clipped
+  makes many such pairs). By default, as B-Pref's teacher does, they are labelled "first segment
+  preferred": noise no reward model can fit (see ``benchmarks/strength.md``).
 
 ``scale`` is the typical segment return (B-Pref: the mean true episode return times
 ``length / horizon``): the ``segment_return_scale`` of the :class:`~rat.preferences.labeller.QueryRound`.
@@ -37,6 +40,7 @@ class TeacherConfig:
     mistake: float = 0.0  #: probability of a flipped label
     skip: float = 0.0  #: skip threshold, as a fraction of the segment-return scale
     equal: float = 0.0  #: equal-preference threshold, as a fraction of the segment-return scale
+    ties: bool = False  #: label exactly equal returns 0.5 (default, as B-Pref: first segment preferred)
 
     def __post_init__(self):
         if not 0.0 <= self.mistake <= 1.0:
@@ -87,4 +91,6 @@ class ScriptedTeacher:
         y[flip] = 1.0 - y[flip]
         if cfg.equal > 0:
             y[np.abs(r1 - r0) < cfg.equal * self.scale] = 0.5
+        if cfg.ties:
+            y[r1 == r0] = 0.5
         return Labels(keep, y)

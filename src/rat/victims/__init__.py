@@ -7,13 +7,14 @@ from pathlib import Path
 from rat.errors import RatError
 from rat.victims.adapters import load_rat_victim, load_sb3_victim, save_victim
 from rat.victims.base import ModuleVictim, Victim, check_compatible, freeze
-from rat.victims.zoo import ZOO_PREFIX, load_zoo_victim, zoo_tasks
+from rat.victims.zoo import ZOO_PREFIX, load_zoo_victim, zoo_tasks, zoo_victims
 
 
 def load_victim(spec: str) -> ModuleVictim:
     """Load a victim from a specification string.
 
-    - ``zoo:<task>``: a shipped victim, e.g. ``zoo:drawer-open-v3``;
+    - ``zoo:<task>``: a zoo victim, e.g. ``zoo:drawer-open-v3`` (the SAC one where one exists, else the
+      behaviour clone), or ``zoo:<task>@sac`` / ``zoo:<task>@bc`` for one kind;
     - ``sb3:<file>`` or any ``*.zip``: a Stable-Baselines3 SAC/TD3/PPO model file;
     - a path to this project's victim checkpoint (``victim.json``/``.safetensors``, or the run
       directory holding them).
@@ -44,4 +45,5 @@ __all__ = [
     "load_zoo_victim",
     "save_victim",
     "zoo_tasks",
+    "zoo_victims",
 ]

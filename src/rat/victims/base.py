@@ -98,16 +98,39 @@ class ModuleVictim(nn.Module):
         return None
 
 
-def numpy_policy(victim: Victim):
-    """``obs -> action`` in numpy for rollouts of a memoryless victim (one observation at a time)."""
+class VictimPolicy:
+    """A victim as ``obs -> action`` in numpy, one observation at a time, for rollouts.
 
-    device = next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, nn.Module) else "cpu"
+    A sequence victim's context is kept here: :meth:`reset` starts an episode, and
+    :meth:`observe` records the step just taken (the observation as the victim saw it, its
+    action, and the environment's reward). Memoryless victims need neither.
+    """
+
+    def __init__(self, victim: Victim):
+        self.victim = victim
+        self.device = next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, nn.Module) else "cpu"
+        self.context = victim.initial_context(1)
+        self._last: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def reset(self) -> None:
+        self.context, self._last = self.victim.initial_context(1), None
 
     @torch.no_grad()
-    def act(obs: np.ndarray) -> np.ndarray:
-        return victim.act(torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)).squeeze(0).cpu().numpy()
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+        action = self.victim.act(o, self.context)
+        self._last = (o, action)
+        return action.squeeze(0).cpu().numpy()
 
-    return act
+    def observe(self, reward: float) -> None:
+        if self.context is not None and self._last is not None:
+            obs, action = self._last
+            self.context = self.victim.update_context(self.context, obs, action, torch.tensor([float(reward)]))
+
+
+def numpy_policy(victim: Victim) -> VictimPolicy:
+    """``obs -> action`` in numpy for rollouts of a victim (see :class:`VictimPolicy`)."""
+    return VictimPolicy(victim)
 
 
 def check_compatible(victim: Victim, env: gym.Env, env_name: str = "the environment") -> None:

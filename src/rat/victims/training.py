@@ -22,7 +22,7 @@ from rat.agents.buffer import ReplayBuffer
 from rat.agents.networks import TanhGaussianActor
 from rat.agents.sac import SAC, SACConfig
 from rat.device import resolve_device
-from rat.envs.metaworld import make_task
+from rat.envs import LOCOMOTION_TASKS, make_task
 from rat.eval import EvalResult, evaluate
 from rat.errors import RatError
 from rat.loop import TrainingLoop
@@ -82,6 +82,8 @@ class VictimConfig:
             raise RatError(f"stop-success must lie in (0, 1], got {self.stop_success}")
         if self.random_steps < 0 or self.demo_noise < 0:
             raise RatError("random-steps and demo-noise must not be negative")
+        if self.method != "sac" and self.task in LOCOMOTION_TASKS:
+            raise RatError(f"{self.task} has no scripted expert to learn from; use --method sac")
         if self.method == "sac" and self.total_steps <= self.random_steps:
             raise RatError(f"{self.total_steps} steps end before SAC's first update (after {self.random_steps} random "
                            f"steps); give --total-steps > {self.random_steps} or --set random_steps=...")

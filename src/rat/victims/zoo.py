@@ -4,6 +4,11 @@ Each is ``zoo/<task>.safetensors`` + ``zoo/<task>.json``, made by ``rat victim z
 cloning of the scripted expert with DART noise: minutes per task on a CPU, against hours of SAC;
 see the README). ``zoo/timings.json`` records what each took to make.
 
+A zoo may hold victims of several kinds per task, named ``<task>@<method>`` (``@sac``: SAC
+agents like the paper's; ``@bc``: behaviour clones, also stored as plain ``<task>``).
+``zoo:<task>`` is the SAC victim where one exists, else the behaviour clone;
+``zoo:<task>@sac`` and ``zoo:<task>@bc`` name one kind.
+
 ``zoo:<task>`` looks first in the user's zoo (``$RAT_ZOO``, else ``$XDG_DATA_HOME/rat/zoo``, else
 ``~/.local/share/rat/zoo``), where ``rat victim zoo`` writes, then in the shipped one; the package
 itself is written only when asked (``--dest``).
@@ -41,25 +46,50 @@ def zoo_dirs() -> list[Path]:
     return [user_zoo_dir(), ZOO_DIR]
 
 
+def _kinds(directory: Path) -> dict[str, set[str]]:
+    """``{task: {methods}}`` of the victims in one zoo folder (plain ``<task>`` files are behaviour clones)."""
+    found: dict[str, set[str]] = {}
+    for path in Path(directory).glob("*-v3*.json"):
+        task, _, method = path.stem.partition("@")
+        found.setdefault(task, set()).add(method or "bc")
+    return found
+
+
+def zoo_victims(directory: Path | None = None) -> dict[str, list[str]]:
+    """``{task: [methods]}`` of every zoo victim (in ``directory``, or in any zoo), SAC first."""
+    merged: dict[str, set[str]] = {}
+    for d in [directory] if directory is not None else zoo_dirs():
+        for task, methods in _kinds(d).items():
+            merged.setdefault(task, set()).update(methods)
+    return {t: sorted(m, key=lambda x: (x != "sac", x)) for t, m in sorted(merged.items())}
+
+
 def zoo_tasks(directory: Path | None = None) -> list[str]:
     """Tasks with a zoo victim (in ``directory``, or in any zoo)."""
+    return list(zoo_victims(directory))
+
+
+def zoo_path(name: str, directory: Path | None = None) -> Path:
+    """The checkpoint of zoo victim ``<task>`` or ``<task>@<method>``: the first zoo that has one.
+
+    ``<task>`` alone is the SAC victim where any zoo has one, else the behaviour clone.
+    """
+    task, _, method = name.partition("@")
+    wanted = [method] if method else ["sac", "bc"]
     directories = [directory] if directory is not None else zoo_dirs()
-    return sorted({p.stem for d in directories for p in Path(d).glob("*-v3.json")})
+    for m in wanted:
+        for d in directories:
+            for stem in ([f"{task}@{m}", task] if m == "bc" else [f"{task}@{m}"]):
+                if (Path(d) / stem).with_suffix(".json").exists():
+                    return Path(d) / stem
+    known = [f"{t}@{m}" for t, ms in zoo_victims(directory).items() for m in ms]
+    raise RatError(f"no zoo victim '{name}'; zoo victims: {', '.join(known) or 'none'} (regenerate with "
+                   "`rat victim zoo`)")
 
 
-def zoo_path(task: str, directory: Path | None = None) -> Path:
-    """The checkpoint of ``task``'s zoo victim: the first zoo that has one."""
-    for d in [directory] if directory is not None else zoo_dirs():
-        path = Path(d) / task
-        if path.with_suffix(".json").exists():
-            return path
-    raise RatError(f"no zoo victim for '{task}'; zoo victims: {', '.join(zoo_tasks(directory)) or 'none'} "
-                   "(regenerate with `rat victim zoo`)")
-
-
-def load_zoo_victim(task: str) -> ModuleVictim:
-    """The shipped victim of ``task`` (frozen)."""
-    return load_rat_victim(zoo_path(task), name=f"{ZOO_PREFIX}{task}")
+def load_zoo_victim(name: str) -> ModuleVictim:
+    """The zoo victim ``<task>`` or ``<task>@<method>`` (frozen)."""
+    return load_rat_victim(zoo_path(name), name=f"{ZOO_PREFIX}{name}")
 
 
 def _make_one(args: tuple) -> dict:
@@ -72,8 +102,9 @@ def _make_one(args: tuple) -> dict:
     started = time.perf_counter()
     path, result = train_victim(config, Path(work_dir) / config.task, progress=False)
     minutes = (time.perf_counter() - started) / 60
+    name = config.task if config.method == "bc" else f"{config.task}@{config.method.split('-')[0]}"
     for suffix in (".safetensors", ".json"):
-        shutil.copy(path.with_suffix(suffix), Path(dest) / f"{config.task}{suffix}")
+        shutil.copy(path.with_suffix(suffix), Path(dest) / f"{name}{suffix}")
     return {"task": config.task, "method": config.method, "minutes": round(minutes, 2),
             "clean_success": result.success_rate, "episodes": result.episodes,
             "success_ci": [round(x, 3) for x in result.success_ci], "mean_return": round(result.mean_return, 1),

@@ -1,0 +1,207 @@
+"""Sequence victims: Decision Transformers that act on their recent history.
+
+A Decision Transformer (``transformers.DecisionTransformerModel``, Chen et al. 2021) reads the
+last K steps of (return-to-go, state, action) and predicts the next action. As a
+:class:`~rat.victims.base.Victim` it keeps that history in a :class:`DTContext`:
+
+- ``initial_context()`` starts an episode: no steps yet, return-to-go = the target return;
+- ``act(obs, context)`` appends ``obs`` as the current state (normalised with the checkpoint's own
+  statistics) and returns the predicted action; it is differentiable in ``obs``, the only input
+  an attacker controls;
+- ``update_context(context, obs, action, reward)`` records the step: the state *as the victim saw
+  it*, the action it took, and the return-to-go lowered by the true reward.
+
+The threat model for a sequence victim: each observation is perturbed once, when it is seen,
+and the perturbed state stays in the context — the victim never sees the true state of a past
+step, because it never saw it. An attacker does not get to rewrite the past; what it changes is
+the present observation, whose effect lives on in the context.
+
+Checkpoints load as users have them, in the Hugging Face hub's layout, from a local directory:
+``config.json`` and the weights (``model.safetensors``, or ``pytorch_model.bin`` read with
+``torch.load(weights_only=True)``), plus ``rat_dt.json`` beside them, which this project defines:
+``{"state_mean": [...], "state_std": [...], "target_return": 6000, "return_scale": 1000,
+"task": "HalfCheetah-v5"}``. Nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+from rat.errors import RatError, require
+from rat.victims.base import freeze
+
+DT_META = "rat_dt.json"
+
+
+@dataclass(frozen=True)
+class DTContext:
+    """The recent history of a batch of episodes (at most K steps), as the victim saw it.
+
+    Attributes:
+        states: ``[B, t, obs_dim]`` raw (unnormalised) states seen.
+        actions: ``[B, t, act_dim]`` actions taken.
+        returns_to_go: ``[B, t + 1]`` returns-to-go (unscaled), the last one for the coming step.
+        timesteps: ``[B, t + 1]`` episode steps, the last one for the coming step.
+    """
+
+    states: torch.Tensor
+    actions: torch.Tensor
+    returns_to_go: torch.Tensor
+    timesteps: torch.Tensor
+
+    @property
+    def length(self) -> int:
+        return self.states.shape[1]
+
+
+class DecisionTransformerVictim(nn.Module):
+    """A frozen Decision Transformer as a :class:`~rat.victims.base.Victim` (see the module docstring).
+
+    Args:
+        model: the ``DecisionTransformerModel``; it is frozen here.
+        observation_space, action_space: what it expects and emits.
+        state_mean, state_std: the statistics its states were normalised with in training.
+        target_return: the return it is conditioned on at the start of an episode.
+        return_scale: returns-to-go are divided by it before they enter the model (1000 in the paper).
+        context_length: K, the steps it reads (the paper's 20).
+    """
+
+    def __init__(self, model: nn.Module, observation_space: gym.spaces.Box, action_space: gym.spaces.Box,
+                 state_mean: np.ndarray, state_std: np.ndarray, target_return: float, return_scale: float = 1000.0,
+                 context_length: int = 20, name: str = "decision-transformer", meta: dict[str, Any] | None = None):
+        super().__init__()
+        self.model = freeze(model)
+        self.observation_space, self.action_space, self.name = observation_space, action_space, name
+        self.meta = dict(meta or {})
+        self.target_return, self.return_scale, self.context_length = float(target_return), float(return_scale), context_length
+        self.max_timestep = int(model.config.max_ep_len) - 1
+        self.register_buffer("state_mean", torch.as_tensor(np.asarray(state_mean), dtype=torch.float32))
+        self.register_buffer("state_std", torch.as_tensor(np.asarray(state_std), dtype=torch.float32))
+        self.register_buffer("low", torch.as_tensor(action_space.low, dtype=torch.float32))
+        self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
+
+    def train(self, mode: bool = True) -> "DecisionTransformerVictim":
+        return super().train(False)  # dropout would make the victim stochastic
+
+    def initial_context(self, batch_size: int = 1) -> DTContext:
+        obs_dim, act_dim = self.observation_space.shape[0], self.action_space.shape[0]
+        dev = self.state_mean.device
+        return DTContext(torch.zeros(batch_size, 0, obs_dim, device=dev), torch.zeros(batch_size, 0, act_dim, device=dev),
+                         torch.full((batch_size, 1), self.target_return, device=dev),
+                         torch.zeros(batch_size, 1, dtype=torch.long, device=dev))
+
+    def act(self, obs: torch.Tensor, context: DTContext | None = None) -> torch.Tensor:
+        """The action for the current observations ``[B, obs_dim]`` after ``context`` (a fresh episode if None)."""
+        obs = obs.float()
+        if context is None:
+            context = self.initial_context(obs.shape[0])
+        if context.states.shape[0] != obs.shape[0]:  # one episode's context, a batch of observations
+            context = _repeat(context, obs.shape[0])
+        k = self.context_length
+        states = torch.cat([context.states, obs.unsqueeze(1)], 1)[:, -k:]
+        placeholder = torch.zeros(obs.shape[0], 1, self.action_space.shape[0], device=obs.device)  # not yet taken
+        actions = torch.cat([context.actions, placeholder], 1)[:, -k:]
+        rtg = context.returns_to_go[:, -k:]
+        timesteps = context.timesteps[:, -k:].clamp(max=self.max_timestep)
+        n, pad = states.shape[1], k - states.shape[1]
+        states = (states - self.state_mean) / self.state_std
+
+        def left_pad(x: torch.Tensor, value: float = 0.0) -> torch.Tensor:
+            shape = (x.shape[0], pad, *x.shape[2:])
+            return torch.cat([torch.full(shape, value, dtype=x.dtype, device=x.device), x], 1)
+
+        mask = torch.cat([torch.zeros(obs.shape[0], pad, device=obs.device), torch.ones(obs.shape[0], n, device=obs.device)], 1)
+        _, action_preds, _ = self.model(
+            states=left_pad(states), actions=left_pad(actions), rewards=torch.zeros(obs.shape[0], k, 1, device=obs.device),
+            returns_to_go=left_pad((rtg / self.return_scale).unsqueeze(-1)), timesteps=left_pad(timesteps).long(),
+            attention_mask=mask.long(), return_dict=False)
+        action = action_preds[:, -1]
+        return torch.max(torch.min(action, self.high), self.low)
+
+    forward = act
+
+    def update_context(self, context: DTContext, obs: torch.Tensor, action: torch.Tensor, reward: torch.Tensor
+                       ) -> DTContext:
+        """The context after a step: the state as seen, the action taken, the return-to-go lowered by the true reward."""
+        obs, action = obs.detach().float(), action.detach().float()
+        reward = torch.as_tensor(reward, dtype=torch.float32, device=obs.device).reshape(-1)
+        keep = self.context_length  # K steps of history are all the model ever reads
+        return DTContext(torch.cat([context.states, obs.unsqueeze(1)], 1)[:, -keep:],
+                         torch.cat([context.actions, action.unsqueeze(1)], 1)[:, -keep:],
+                         torch.cat([context.returns_to_go, (context.returns_to_go[:, -1] - reward).unsqueeze(1)], 1)[:, -keep - 1:],
+                         torch.cat([context.timesteps, context.timesteps[:, -1:] + 1], 1)[:, -keep - 1:])
+
+
+def _repeat(context: DTContext, n: int) -> DTContext:
+    return replace(context, **{k: getattr(context, k).expand(n, *getattr(context, k).shape[1:])
+                               for k in ("states", "actions", "returns_to_go", "timesteps")})
+
+
+# --- checkpoints in the hub's layout ----------------------------------------------------------------------------
+
+
+def save_decision_transformer(directory: str | Path, model: nn.Module, state_mean, state_std, target_return: float,
+                              return_scale: float = 1000.0, **meta) -> Path:
+    """Write ``model`` in the hub's layout (``config.json`` + ``model.safetensors``) with ``rat_dt.json``."""
+    directory = Path(directory)
+    model.save_pretrained(directory, safe_serialization=True)
+    (directory / DT_META).write_text(json.dumps({
+        "state_mean": np.asarray(state_mean, float).tolist(), "state_std": np.asarray(state_std, float).tolist(),
+        "target_return": float(target_return), "return_scale": float(return_scale), **meta}, indent=1))
+    return directory
+
+
+def load_decision_transformer(directory: str | Path, name: str | None = None) -> DecisionTransformerVictim:
+    """A Decision Transformer from a local directory in the hub's layout, with ``rat_dt.json`` beside it."""
+    transformers = require("transformers", "dt")
+    from safetensors.torch import load_file
+
+    directory = Path(directory)
+    if not (directory / "config.json").is_file():
+        raise RatError(f"no Decision Transformer at '{directory}': expected config.json and weights in the hub's layout")
+    if not (directory / DT_META).is_file():
+        raise RatError(f"'{directory}' lacks {DT_META} (state_mean, state_std, target_return): write it beside "
+                       "config.json; the hub's checkpoints publish these numbers in their model cards")
+    try:
+        meta = json.loads((directory / DT_META).read_text())
+        config = transformers.DecisionTransformerConfig.from_json_file(str(directory / "config.json"))
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError, ValueError) as exc:
+        raise RatError(f"the configuration in '{directory}' is not readable ({exc.__class__.__name__}); "
+                       "restore config.json and rat_dt.json") from exc
+    if getattr(config, "model_type", None) != "decision_transformer":
+        raise RatError(f"'{directory}/config.json' is a '{getattr(config, 'model_type', '?')}' model, not a "
+                       "Decision Transformer")
+    if (directory / "model.safetensors").is_file():
+        state = load_file(str(directory / "model.safetensors"))
+    elif (directory / "pytorch_model.bin").is_file():
+        try:
+            state = torch.load(directory / "pytorch_model.bin", map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - pickles with code are refused by weights_only
+            raise RatError(f"'{directory}/pytorch_model.bin' holds more than tensors, which rat never loads; "
+                           "convert it to model.safetensors") from exc
+    else:
+        raise RatError(f"no weights in '{directory}': expected model.safetensors or pytorch_model.bin")
+    model = transformers.DecisionTransformerModel(config)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if [k for k in missing if not k.endswith("attn.bias") and not k.endswith("attn.masked_bias")] or unexpected:
+        raise RatError(f"the weights in '{directory}' do not match its config.json (missing {len(missing)}, "
+                       f"unexpected {len(unexpected)} tensors)")
+    obs_dim, act_dim = int(config.state_dim), int(config.act_dim)
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (act_dim,), np.float32)
+    for key, size in (("state_mean", obs_dim), ("state_std", obs_dim)):
+        if len(meta.get(key, [])) != size:
+            raise RatError(f"{DT_META} in '{directory}' needs {key} of length {size} (the state size)")
+    return DecisionTransformerVictim(model, observation_space, action_space, meta["state_mean"], meta["state_std"],
+                                     meta.get("target_return", 0.0), meta.get("return_scale", 1000.0),
+                                     int(meta.get("context_length", 20)),
+                                     name=name or str(directory), meta={k: v for k, v in meta.items()
+                                                                        if k not in ("state_mean", "state_std")})

@@ -1,0 +1,191 @@
+"""Decision Transformer victims: hub-layout round trip, context over an episode, gradients, the threat model."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from rat.attacks import ThreatModel
+from rat.errors import RatError
+
+transformers = pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
+
+from rat.victims.sequence import (  # noqa: E402
+    DT_META,
+    DecisionTransformerVictim,
+    load_decision_transformer,
+    save_decision_transformer,
+)
+
+OBS, ACT, K = 5, 3, 4
+
+
+def tiny_model(seed=0):
+    torch.manual_seed(seed)
+    config = transformers.DecisionTransformerConfig(state_dim=OBS, act_dim=ACT, hidden_size=16, max_ep_len=50,
+                                                    n_layer=1, n_head=1, n_positions=64, action_tanh=True)
+    return transformers.DecisionTransformerModel(config).eval()
+
+
+MEAN, STD = np.linspace(-1, 1, OBS), np.linspace(0.5, 2, OBS)
+
+
+def reference_action(model, states, actions, rtg, timesteps):
+    """The hub's own recipe (the Decision Transformer blog's get_action): pad on the left to K, mask, predict."""
+    states = (torch.as_tensor(np.asarray(states), dtype=torch.float32) - torch.as_tensor(MEAN, dtype=torch.float32)) \
+        / torch.as_tensor(STD, dtype=torch.float32)
+    actions = torch.cat([torch.as_tensor(np.asarray(actions), dtype=torch.float32).reshape(-1, ACT), torch.zeros(1, ACT)])
+    rtg = torch.as_tensor(np.asarray(rtg), dtype=torch.float32).reshape(-1, 1) / 1000.0
+    timesteps = torch.as_tensor(np.asarray(timesteps)).reshape(-1)
+    states, actions, rtg, timesteps = states[-K:], actions[-K:], rtg[-K:], timesteps[-K:]
+    pad = K - len(states)
+    mask = torch.cat([torch.zeros(pad), torch.ones(len(states))]).long().unsqueeze(0)
+    z = lambda x, *shape: torch.cat([torch.zeros(pad, *shape, dtype=x.dtype), x]).unsqueeze(0)  # noqa: E731
+    _, action_preds, _ = model(states=z(states, OBS), actions=z(actions, ACT), rewards=torch.zeros(1, K, 1),
+                               returns_to_go=z(rtg, 1), timesteps=z(timesteps).long(), attention_mask=mask,
+                               return_dict=False)
+    return action_preds[0, -1]
+
+
+@pytest.fixture
+def saved(tmp_path):
+    model = tiny_model()
+    save_decision_transformer(tmp_path / "dt", model, MEAN, STD, target_return=3600.0, context_length=K,
+                              task="HalfCheetah-v5")
+    return model, tmp_path / "dt"
+
+
+def test_a_checkpoint_in_the_hub_layout_loads_and_acts_as_the_hubs_recipe_over_an_episode(saved):
+    model, directory = saved
+    assert (directory / "config.json").exists() and (directory / "model.safetensors").exists()
+    victim = load_decision_transformer(directory)
+    assert victim.meta["task"] == "HalfCheetah-v5" and victim.context_length == K
+    rng = np.random.default_rng(0)
+    context, states, actions, rtg, timesteps = victim.initial_context(), [], [], [3600.0], [0]
+    for t in range(9):  # longer than K: the context keeps the last K steps
+        obs = rng.normal(size=OBS)
+        with torch.no_grad():
+            action = victim.act(torch.as_tensor(obs).unsqueeze(0), context)[0]
+        states.append(obs)
+        torch.testing.assert_close(action, reference_action(model, states, actions, rtg, timesteps))
+        reward = float(rng.normal())
+        context = victim.update_context(context, torch.as_tensor(obs).unsqueeze(0), action.unsqueeze(0),
+                                        torch.tensor([reward]))
+        actions.append(action.numpy())
+        rtg.append(rtg[-1] - reward)
+        timesteps.append(t + 1)
+        assert context.length == min(t + 1, K) and int(context.timesteps[0, -1]) == t + 1
+        torch.testing.assert_close(context.returns_to_go[0, -1], torch.tensor(rtg[-1]))
+    fresh = victim.initial_context()  # reset: a new episode starts from the target return at step 0
+    assert fresh.length == 0 and float(fresh.returns_to_go[0, -1]) == 3600.0 and int(fresh.timesteps[0, -1]) == 0
+
+
+def test_gradients_reach_the_current_observation_and_nothing_in_the_victim_changes(saved):
+    _, directory = saved
+    victim = load_decision_transformer(directory)
+    before = {k: v.clone() for k, v in victim.state_dict().items()}
+    context = victim.initial_context()
+    for _ in range(3):
+        obs = torch.randn(1, OBS)
+        context = victim.update_context(context, obs, victim.act(obs, context).detach(), torch.tensor([1.0]))
+    threat = ThreatModel(0.1)
+    obs = torch.randn(1, OBS)
+    delta = torch.zeros(1, OBS, requires_grad=True)
+    victim.act(threat.perturb(obs, delta), context).sum().backward()
+    assert delta.grad is not None and delta.grad.abs().sum() > 0
+    assert all(p.grad is None and not p.requires_grad for p in victim.parameters())
+    assert all(torch.equal(before[k], v) for k, v in victim.state_dict().items())
+
+
+def test_the_perturbed_states_stay_in_the_context_within_the_ball(saved):
+    _, directory = saved
+    victim, threat, rng = load_decision_transformer(directory), ThreatModel(0.1, "linf"), np.random.default_rng(1)
+    context, true_states = victim.initial_context(), []
+    for _ in range(6):
+        obs = torch.as_tensor(rng.normal(size=(1, OBS)), dtype=torch.float32)
+        seen = threat.perturb(obs, torch.as_tensor(rng.uniform(-3, 3, size=(1, OBS)), dtype=torch.float32))
+        with torch.no_grad():
+            context = victim.update_context(context, seen, victim.act(seen, context), torch.tensor([0.0]))
+        true_states.append(obs[0])
+    kept = torch.stack(true_states[-K:])
+    gap = (context.states[0] - kept).abs().max(-1).values
+    assert torch.all(gap <= 0.1 + 1e-6) and torch.all(gap > 0)  # what the victim saw, within ε of the truth
+
+
+def test_a_pytorch_bin_loads_only_as_tensors_and_bad_directories_are_one_line(saved, tmp_path):
+    model, directory = saved
+    (directory / "model.safetensors").unlink()
+    torch.save(model.state_dict(), directory / "pytorch_model.bin")
+    victim = load_decision_transformer(directory)
+    obs = torch.randn(1, OBS)
+    with torch.no_grad():
+        torch.testing.assert_close(victim.act(obs)[0], reference_action(model, [obs[0].numpy()], [], [3600.0], [0]))
+
+    class Code:
+        def __reduce__(self):
+            return (print, ("ran code from a model file",))
+
+    torch.save({"w": Code()}, directory / "pytorch_model.bin")
+    with pytest.raises(RatError, match="holds more than tensors"):
+        load_decision_transformer(directory)
+    (directory / DT_META).unlink()
+    with pytest.raises(RatError, match="lacks rat_dt.json"):
+        load_decision_transformer(directory)
+    with pytest.raises(RatError, match="no Decision Transformer at"):
+        load_decision_transformer(tmp_path / "nowhere")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "config.json").write_text(json.dumps({"model_type": "gpt2"}))
+    (tmp_path / "other" / DT_META).write_text("{}")
+    with pytest.raises(RatError, match="not a Decision Transformer|not readable"):
+        load_decision_transformer(tmp_path / "other")
+
+
+def test_a_batch_of_observations_shares_one_episodes_context(saved):
+    _, directory = saved
+    victim = load_decision_transformer(directory)
+    assert isinstance(victim, DecisionTransformerVictim)
+    context = victim.initial_context()
+    obs = torch.randn(1, OBS)
+    context = victim.update_context(context, obs, victim.act(obs, context).detach(), torch.tensor([2.0]))
+    batch = torch.randn(7, OBS)
+    with torch.no_grad():
+        together = victim.act(batch, context)
+        alone = torch.cat([victim.act(b.unsqueeze(0), context) for b in batch])
+    torch.testing.assert_close(together, alone)
+
+
+def test_an_evaluation_keeps_the_victims_context_and_an_attacked_one_stays_in_the_budget(tmp_path):
+    import gymnasium as gym
+
+    from rat.attacks import evaluate_attack
+    from rat.envs import get_target, make_task
+    from rat.eval import evaluate
+    from rat.victims.base import numpy_policy
+
+    torch.manual_seed(0)
+    config = transformers.DecisionTransformerConfig(state_dim=17, act_dim=6, hidden_size=16, max_ep_len=100,
+                                                    n_layer=1, n_head=1, n_positions=64)
+    save_decision_transformer(tmp_path / "dt", transformers.DecisionTransformerModel(config), np.zeros(17),
+                              np.ones(17), target_return=500.0, context_length=K, task="HalfCheetah-v5")
+    victim = load_decision_transformer(tmp_path / "dt")
+    env = gym.wrappers.TimeLimit(make_task("HalfCheetah-v5"), 12)
+    policy = numpy_policy(victim)
+    result = evaluate(policy, env, 2, seed=5)
+    # the same episode by hand: act on what is seen, record the step, lower the return-to-go
+    obs, _ = env.reset(seed=6)
+    context, total = victim.initial_context(), 0.0
+    for _ in range(12):
+        o = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
+        with torch.no_grad():
+            action = victim.act(o, context)
+        obs, reward, _, _, _ = env.step(action[0].numpy())
+        context = victim.update_context(context, o, action, torch.tensor([reward]))
+        total += reward
+    assert policy.context.length == K and int(policy.context.timesteps[0, -1]) == 12
+    torch.testing.assert_close(policy.context.states, context.states)
+    assert np.isclose(policy.context.returns_to_go[0, -1].item(), 500.0 - total, atol=1e-3)
+    assert result.episodes == 2
+    attacked = evaluate_attack(victim, lambda o: np.ones_like(o), env, get_target("cheetah-backward"),
+                               ThreatModel(0.1), 1, seed=6)
+    assert attacked.within_budget and attacked.max_perturbation > 0.099
