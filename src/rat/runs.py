@@ -236,8 +236,8 @@ class Run:
     """
 
     def __init__(self, directory: str | Path, config: Any, tensorboard: bool = False):
-        self.dir = check_run_dir(directory)
-        check_writable_dir(self.dir)
+        self.dir = check_run_dir(directory)  # writable, ours or empty: checked without writing
+        self.dir.mkdir(parents=True, exist_ok=True)
         claim_run_dir(self.dir)
         self.config = to_jsonable(config)
         config_path = self.dir / "config.json"

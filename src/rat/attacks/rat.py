@@ -22,6 +22,7 @@ import copy
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -149,7 +150,7 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=list(adversary.parameters()))  # nothing else may accumulate a gradient
     optimizer.step()
-    return {"adversary_loss": loss.item(), "imitation_gap": objective.gap(adversary, obs)}
+    return {"adversary_loss": loss.item()}
 
 
 def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimizer, adversary: Adversary,
@@ -222,20 +223,14 @@ class RATTrainer:
                              cfg.victim_std, cfg.kl_form)
         return Imitation(self.victim, agent.actor, agent.critic, agent.alpha, cfg.threat, cfg.victim_std, cfg.kl_form)
 
-    @torch.no_grad()
     def intention_return(self, actor) -> float:
         """Mean return under the current r̂ of ``actor``'s deterministic episodes (no true reward is used)."""
-        env, total = self.setup.make_env(self.config.seed + seeds.SELECTION_ENV), 0.0
-        for episode in range(self.config.imitate_episodes):
-            obs, _ = env.reset(seed=seeds.periodic(self.step) + episode)
-            done = False
-            while not done:
-                s = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
-                action = actor(s).squeeze(0).cpu().numpy()
-                total += float(self.learner.ensemble.r_hat(obs.astype(np.float32), action))
-                obs, _, terminated, truncated, _ = env.step(action)
-                done = terminated or truncated
-        return total / self.config.imitate_episodes
+        def act(obs: np.ndarray) -> np.ndarray:
+            return actor(torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)).squeeze(0).cpu().numpy()
+
+        env = self.setup.make_env(self.config.seed + seeds.SELECTION_ENV)
+        return policy_learned_return(act, env, self.learner.ensemble, self.config.imitate_episodes,
+                                     seeds.periodic(self.step))
 
     def keep_best_intention(self) -> dict[str, float]:
         """imitate="best": score π_θ and the kept one under today's r̂, on the same episodes; keep the better."""
@@ -272,6 +267,7 @@ class RATTrainer:
         if learner.reward_ready and learner.step % cfg.adversary_every == 0:
             for _ in range(cfg.adversary_updates):
                 self.metrics.update(self.adversary_step())  # inner level
+            self.metrics["imitation_gap"] = self.objective().gap(self.adversary, self.last_batch)  # after the phase
         if self.use_weighting and learner.reward_ready and learner.step % cfg.weighting_every == 0:
             self.metrics.update(self.weighting_step())  # outer level
         self.succeeded |= self.success_test(info)
@@ -285,7 +281,7 @@ class RATTrainer:
         return self.learner.buffer.sample(self.config.adversary_batch, self.rng, self.device)["obs"]
 
     def adversary_step(self) -> dict[str, float]:
-        obs = self.sample_obs()
+        obs = self.last_batch = self.sample_obs()
         self.counters["adversary_updates"] += 1
         return adversary_update(self.adversary, self.adversary_opt, self.weighting if self.use_weighting else None,
                                 self.objective(), obs, self.config.ablation)
@@ -382,24 +378,35 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
 
 
 @torch.no_grad()
-def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, threat: ThreatModel, episodes: int,
-                   seed: int) -> float:
-    """Mean return under r̂ of the attacked victim's episodes: how well the attack does, by the attacker's model."""
-    delta = adversary_function(adversary)
-    device = next(adversary.parameters()).device
+def policy_learned_return(policy: Callable[[np.ndarray], np.ndarray], env: gym.Env, ensemble, episodes: int,
+                          seed: int) -> float:
+    """Mean return under r̂ of ``policy``'s episodes (``obs -> action``; episode ``i`` reset with ``seed + i``)."""
     returns = []
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         total, done = 0.0, False
         while not done:
-            s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
-            d = torch.as_tensor(delta(obs), dtype=torch.float32, device=device).unsqueeze(0)
-            action = victim.act(threat.perturb(s, d)).squeeze(0).cpu().numpy()
+            action = policy(obs)
             total += float(ensemble.r_hat(obs.astype(np.float32), action))
             obs, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
         returns.append(total)
     return float(np.mean(returns))
+
+
+@torch.no_grad()
+def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, threat: ThreatModel, episodes: int,
+                   seed: int) -> float:
+    """Mean return under r̂ of the attacked victim's episodes: how well the attack does, by the attacker's model."""
+    delta = adversary_function(adversary)
+    device = next(adversary.parameters()).device
+
+    def attacked(obs: np.ndarray) -> np.ndarray:
+        s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
+        d = torch.as_tensor(delta(obs), dtype=torch.float32, device=device).unsqueeze(0)
+        return victim.act(threat.perturb(s, d)).squeeze(0).cpu().numpy()
+
+    return policy_learned_return(attacked, env, ensemble, episodes, seed)
 
 
 def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Victim, ensemble, env: gym.Env,
