@@ -105,3 +105,44 @@ def test_a_sac_victim_trains_on_a_locomotion_task_too(tmp_path):
     victim = load_victim(str(path))
     assert victim.meta["task"] == "HalfCheetah-v5" and victim.observation_space.shape == (17,)
     assert result.episodes == 1 and np.isfinite(result.mean_return)
+
+
+def test_sac_saves_its_best_evaluated_actor_and_keeps_it_across_a_resume(tmp_path, monkeypatch):
+    """Evaluations at steps 250 (scored 100%) and 500 (0%): the 250 actor is the victim, not the last."""
+    cfg = replace(TINY_SAC, eval_every=250, eval_every_episodes=1, eval_episodes=2)
+    real_evaluate = training.evaluate
+    scripted = iter([1.0, 0.0])
+
+    def scored(policy, env, episodes, **kwargs):
+        result = real_evaluate(policy, env, episodes, **kwargs)
+        if episodes == cfg.eval_every_episodes:  # a periodic evaluation, not the final one
+            result = replace(result, success_rate=next(scripted))
+        return result
+
+    monkeypatch.setattr(training, "evaluate", scored)
+    real_update, calls = training.SAC.update, {"n": 0}
+
+    def update_then_die(self, batch):
+        calls["n"] += 1
+        if calls["n"] == 350:  # step 549: after the second evaluation and the 500 checkpoint
+            raise Interrupt
+        return real_update(self, batch)
+
+    monkeypatch.setattr(training.SAC, "update", update_then_die)
+    with pytest.raises(Interrupt):
+        train_victim(cfg, tmp_path / "run", progress=False)
+    state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
+    assert state["best"]["step"] == 250 and state["best"]["score"][0] == 1.0
+
+    monkeypatch.setattr(training.SAC, "update", real_update)
+    path, _ = train_victim(cfg, tmp_path / "run", progress=False)
+    state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
+    victim = load_victim(str(path))
+    assert victim.meta["kept"] == "best" and victim.meta["kept_step"] == 250
+    kept, learner = (training.TanhGaussianActor(39, 4, hidden=32, layers=2) for _ in range(2))
+    kept.load_state_dict(state["best"]["actor"])
+    learner.load_state_dict({k.removeprefix("actor."): v for k, v in state["agent"].items() if k.startswith("actor.")})
+    obs = torch.randn(16, 39)
+    with torch.no_grad():
+        torch.testing.assert_close(victim.act(obs), kept(obs))  # Meta-World's action box is [-1, 1]
+        assert not torch.allclose(victim.act(obs), learner(obs))  # the learner moved on after step 250

@@ -8,6 +8,7 @@ victim and saving it as ``victim.safetensors`` + ``victim.json``.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -64,6 +65,7 @@ class VictimConfig:
     eval_every_episodes: int = 10  #: episodes of each evaluation during SAC
     stop_success: float | None = None  #: end SAC early once this many evaluations in a row reach this success rate
     stop_patience: int = 3  #: consecutive evaluations at ``stop_success`` that end SAC early
+    keep: str = "best"  #: the SAC actor saved: the "best" evaluated (by success, then return) or the "last"
     # evaluation and checkpoints
     eval_episodes: int = 50  #: final evaluation episodes
     checkpoint_every: int = 10_000  #: environment steps (SAC) or updates (BC) between checkpoints
@@ -80,6 +82,8 @@ class VictimConfig:
             raise RatError(f"bc-updates must be positive for bc (0 is allowed for sac-demo), got {self.bc_updates}")
         if self.stop_success is not None and not 0 < self.stop_success <= 1:
             raise RatError(f"stop-success must lie in (0, 1], got {self.stop_success}")
+        if self.keep not in ("best", "last"):
+            raise RatError(f"keep must be best or last, got '{self.keep}'")
         if self.random_steps < 0 or self.demo_noise < 0:
             raise RatError("random-steps and demo-noise must not be negative")
         if self.method != "sac" and self.task in LOCOMOTION_TASKS:
@@ -188,7 +192,9 @@ class SACVictimTrainer:
 
     ``sac-demo`` seeds the replay buffer with scripted demonstrations (and, with ``bc_updates``,
     warm-starts the actor by behaviour cloning) before the first step; ``stop_success`` ends
-    training once ``stop_patience`` evaluations in a row reach it.
+    training once ``stop_patience`` evaluations in a row reach it. SAC on Meta-World is not
+    monotone (evaluations swing between 30% and 100% late in training), so with ``keep="best"``
+    the actor of the best evaluation so far is kept beside the learner, and is the one saved.
     """
 
     kind = "victim-sac-run"
@@ -204,6 +210,7 @@ class SACVictimTrainer:
         self.random_steps = cfg.random_steps if cfg.method == "sac" else 0
         self.obs: np.ndarray | None = None
         self.t0, self.t0_step, self.metrics = time.perf_counter(), 0, {}
+        self.best: dict | None = None  # {"score": (success, return), "step", "actor": state dict} (keep="best")
 
     @property
     def finished(self) -> bool:
@@ -251,17 +258,22 @@ class SACVictimTrainer:
                        seed=cfg.seed + seeds.VICTIM_EVAL_ENV + self.step)
         reached = cfg.stop_success is not None and res.success_rate >= cfg.stop_success
         self.streak = self.streak + 1 if reached else 0
+        score = (res.success_rate, res.mean_return)
+        if cfg.keep == "best" and (self.best is None or score >= tuple(self.best["score"])):
+            actor = {k: v.detach().cpu().clone() for k, v in self.agent.actor.state_dict().items()}
+            self.best = {"score": list(score), "step": self.step, "actor": actor}
         return {"eval_success_rate": res.success_rate, "eval_return": res.mean_return}
 
     def state_dict(self) -> dict:
         return {"agent": self.agent.state_dict(), "optimizers": self.agent.optimizer_state(),
-                "buffer": self.buffer.state_dict(), "rng": rng_state(self.rng)}
+                "buffer": self.buffer.state_dict(), "rng": rng_state(self.rng), "best": self.best}
 
     def load_state_dict(self, state: dict, meta: dict) -> None:
         self.agent.load_state_dict(state["agent"])
         self.agent.load_optimizer_state(state["optimizers"])
         self.buffer.load_state_dict(state["buffer"])
         restore_rng_state(self.rng, state["rng"])
+        self.best = state.get("best")  # absent in checkpoints of older versions
         self.step, self.episode = int(meta["step"]), int(meta["episode"])
         self.streak, self.started = int(meta.get("streak", 0)), True
         self.t0, self.t0_step = time.perf_counter(), self.step  # speed of this session
@@ -271,7 +283,19 @@ class SACVictimTrainer:
 
     @property
     def actor(self) -> TanhGaussianActor:
-        return self.agent.actor
+        """The actor to save: the best evaluated one (``keep="best"``, once evaluated) or the learner's."""
+        if self.best is None:
+            return self.agent.actor
+        actor = copy.deepcopy(self.agent.actor)
+        actor.load_state_dict(self.best["actor"])
+        return actor
+
+    @property
+    def kept(self) -> dict:
+        """What was kept, for the victim's metadata."""
+        if self.best is None:
+            return {"kept": "last", "kept_step": self.step}
+        return {"kept": "best", "kept_step": self.best["step"], "kept_eval_success_rate": self.best["score"][0]}
 
 
 # --- the one entry point -------------------------------------------------------------------------
@@ -308,6 +332,7 @@ def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, t
         "config": run.config,
         "commit": git_commit(),
         "train_seconds": round(train_seconds, 1),
+        **getattr(trainer, "kept", {}),
         "clean_eval": {k: v for k, v in result.to_dict().items() if k not in ("successes", "first_success_step")},
     }
     path = save_victim(run.dir / "victim", actor, env.observation_space, env.action_space, meta)
