@@ -66,6 +66,17 @@ def snapshot(*roots: Path) -> dict[str, tuple[int, int]]:
 
 # Each case: (id, setup(tmp, agent_zip) -> argv, fragments of the one-line error).
 CASES = [
+    ("web options without the web labeller", lambda t, z: ["attack", "train", "--web-port", "9000", "--out",
+                                                            str(t / "run")],
+     ["apply to --labeller web; add it"]),
+    ("web fallback without a timeout", lambda t, z: ["intention", "train", "--labeller", "web", "--web-fallback",
+                                                     "--out", str(t / "run")],
+     ["--web-fallback answers after a timeout", "--web-timeout"]),
+    ("web labeller for an attack that asks nothing", lambda t, z: ["attack", "train", "--method", "random",
+                                                                   "--labeller", "web", "--out", str(t / "run")],
+     ["asks no preference queries", "drop --labeller"]),
+    ("labelling page for a missing store", lambda t, z: ["labels", "serve", str(t / "nothing.sqlite")],
+     ["no label store at"]),
     ("unknown task", lambda t, z: ["victim", "eval", "zoo:drawer-open-v3", "--task", "drawer-opne-v3"],
      ["unknown task 'drawer-opne-v3'", "did you mean 'drawer-open-v3'"]),
     ("foreign victim without its task", lambda t, z: ["attack", "train", "--method", "random", "--victim", str(z),

@@ -1,4 +1,4 @@
-"""The import graph runs one way: cli -> experiments -> attacks / preferences / victims -> envs / agents."""
+"""The import graph runs one way: cli -> experiments -> attacks / labelling -> preferences / victims -> envs / agents."""
 
 import ast
 from pathlib import Path
@@ -9,7 +9,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "rat"
 LAYERS = [
     {"cli"},
     {"experiments"},
-    {"attacks"},
+    {"attacks", "labelling"},
     {"preferences", "victims"},
     {"eval"},
     {"envs", "agents"},

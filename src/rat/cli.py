@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import importlib
 import json
 import sys
@@ -55,6 +57,42 @@ def set_option(what: str):
     """``--set name=value`` (repeatable): any field of ``what``'s configuration, nested ones by dotted path."""
     return click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE",
                         help=f"any setting of {what}, e.g. --set pebble.budget=5000 (repeatable; see its config class)")
+
+
+def labeller_options(f):
+    """``--labeller scripted|web`` and where and how long the labelling page waits for a person."""
+    options = [
+        click.option("--labeller", type=click.Choice(["scripted", "web"]), default="scripted", show_default=True,
+                     help="who answers the preference queries: the scripted teacher, or a person on the labelling page"),
+        click.option("--web-host", default="127.0.0.1", show_default=True,
+                     help="--labeller web: address of the page (any but loopback needs the printed token)"),
+        click.option("--web-port", type=int, default=8765, show_default=True, help="--labeller web: port of the page"),
+        click.option("--web-timeout", type=float, default=None,
+                     help="--labeller web: seconds a round waits for answers [until all are answered]"),
+        click.option("--web-fallback", is_flag=True,
+                     help="--labeller web: after --web-timeout the scripted teacher answers what is left"),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
+def make_labeller(kind: str, out: Path, teacher, host: str, port: int, timeout: float | None, fallback: bool):
+    """The labeller a run asks (None: the run's own scripted teacher); a web one starts serving and says where."""
+    if kind == "scripted":
+        if (host, port, timeout, fallback) != ("127.0.0.1", 8765, None, False):
+            raise RatError("--web-host, --web-port, --web-timeout and --web-fallback apply to --labeller web; add it")
+        return None
+    from rat.labelling import WebLabeller, WebLabellingConfig
+    from rat.preferences.teacher import ScriptedTeacher
+
+    if fallback and timeout is None:
+        raise RatError("--web-fallback answers after a timeout; give --web-timeout SECONDS too")
+    labeller = WebLabeller(out / "labels.sqlite", WebLabellingConfig(host, port, timeout_s=timeout, fallback=fallback),
+                           ScriptedTeacher(teacher))
+    labeller.serve()
+    click.echo(f"label the queries of this run at {labeller.config.url()} (the run waits at each feedback round)")
+    return labeller
 
 
 def config_from_options(ctx: click.Context, config_cls: type, base=None, assignments=()):
@@ -291,11 +329,14 @@ INTENTION = "rat.preferences.intention:IntentionConfig"
 @config_option(INTENTION, "seed", type=int)
 @config_option(INTENTION, "device", type=click.Choice(["auto", "cpu", "cuda"]))
 @set_option("the run (rat.preferences.intention.IntentionConfig)")
+@labeller_options
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/intention-...]")
 @click.option("--tensorboard", is_flag=True, help="also log to TensorBoard")
 @click.pass_context
-def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignments, **_) -> None:
-    """Train an intention policy for TARGET from scripted preference labels; resumes with the same --out."""
+def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignments, labeller, web_host, web_port,
+                    web_timeout, web_fallback, **_) -> None:
+    """Train an intention policy for TARGET from preference labels (scripted, or a person's with --labeller web);
+    resumes with the same --out."""
     from rat.preferences.intention import IntentionConfig, train_intention
 
     from rat.runs import check_run_dir
@@ -303,7 +344,8 @@ def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignmen
     config = config_from_options(ctx, IntentionConfig, assignments=assignments)
     resolve_device(config.device)  # a missing GPU is said before anything is written
     out = check_run_dir(out or Path("runs") / f"intention-{task}-{target}-{budget}-{seed}")
-    report = train_intention(config, out, progress=True, tensorboard=tensorboard)
+    who = make_labeller(labeller, out, config.pebble.teacher, web_host, web_port, web_timeout, web_fallback)
+    report = train_intention(config, out, progress=True, tensorboard=tensorboard, labeller=who)
     lo, hi = report.target_success_ci
     click.echo(f"target success of the intention policy: {100 * report.target_success_rate:.1f}% "
                f"(95% CI {100 * lo:.1f}-{100 * hi:.1f}%, {report.final_eval_episodes} episodes)")
@@ -315,7 +357,7 @@ def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignmen
 
 @cli.group()
 def labels() -> None:
-    """List, export and import preference labels (SQLite label stores)."""
+    """List, export, import and serve preference labels (SQLite label stores; `serve`: the labelling page)."""
 
 
 def _open_store(path: Path):
@@ -337,9 +379,10 @@ def labels_list(store, source, show) -> None:
             click.echo(f"{src}: {n} labels, {sum(r['asked'] for r in rounds)} queries asked in {len(rounds)} rounds")
         labels = s.read(source)
         for row in labels.rows[:show]:
-            who = row["labeller"].get("type", "?")
+            who = row["labeller"].get("type", "?") + (f" {row['labeller']['name']}" if "name" in row["labeller"] else "")
+            took = f" in {row['duration_s']:.1f} s" if row.get("duration_s") is not None else ""
             click.echo(f"  #{row['id']:<6} {row['created_at']}  {row['task']}/{row['target']}  round {row['round']}  "
-                       f"label {row['label']:.1f}  by {who}")
+                       f"label {row['label']:.1f}  by {who}{took}")
 
 
 @labels.command("export")
@@ -363,6 +406,31 @@ def labels_import(store, src, source) -> None:
     _open_store(src).close()  # SRC is checked before STORE is created
     with LabelStore(store) as s:
         click.echo(f"imported {s.import_from(src, source)} labels into {store}")
+
+
+@labels.command("serve")
+@click.argument("where", type=click.Path(path_type=Path))
+@click.option("--host", default="127.0.0.1", show_default=True, help="address (any but loopback needs the token)")
+@click.option("--port", type=int, default=8765, show_default=True)
+@click.option("--token", default=None, help="access token [generated off loopback]")
+def labels_serve(where, host, port, token) -> None:
+    """Serve the labelling page for WHERE (a run directory or its labels.sqlite) until interrupted.
+
+    A run with --labeller web serves its own page; this serves a store without one (a run that
+    runs elsewhere with --web-host set to not serve, or the page after a restart)."""
+    from rat.labelling import WebLabellingConfig
+    from rat.labelling.server import serve
+
+    store = where / "labels.sqlite" if where.is_dir() else where
+    _open_store(store).close()
+    config = WebLabellingConfig(host, port, token).with_token()
+    click.echo(f"labelling page for {store} at {config.url()} (Ctrl-C stops it; nothing is lost)")
+    serve(store, config)
+
+
+label_alias = copy.copy(labels)  # `rat label serve` reads naturally too
+label_alias.hidden = True
+cli.add_command(label_alias, "label")
 
 
 # --- attacks ---------------------------------------------------------------------------------------
@@ -413,9 +481,10 @@ THREAT = "rat.attacks.threat:ThreatModel"
 @click.option("--video/--no-video", default=True, show_default=True,
               help="film two of ten attacked episodes, those reaching the target first")
 @click.option("--tensorboard", is_flag=True)
+@labeller_options
 def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, spend_by, seed_steps,
                  pretrain_steps, preset, steps, ablation, kl_form, hypergradient, actor_steps, device, seed, assignments,
-                 out, video, tensorboard) -> None:
+                 out, video, tensorboard, labeller, web_host, web_port, web_timeout, web_fallback) -> None:
     """Train an attack (RAT by default) and evaluate it; re-running with the same --out resumes it."""
     from rat.attacks import ThreatModel, check_reward, get_attack
     from rat.configs import parse_assignment, with_values
@@ -453,6 +522,12 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
     name = victim_spec.replace(":", "-").replace("/", "_")
     out = check_run_dir(out or Path("runs") / f"{method}{'' if reward == attack.rewards[0] else '-' + reward}-{name}-"
                                               f"{target}-{seed}")
+    if labeller != "scripted" and "pebble" not in fields:
+        raise RatError(f"attack '{method}' asks no preference queries; drop --labeller (it reads labels with --labels)")
+    who = make_labeller(labeller, out, getattr(getattr(config, "pebble", None), "teacher", None), web_host, web_port,
+                        web_timeout, web_fallback)
+    if who is not None:
+        setup = dataclasses.replace(setup, labeller=who)
     report = train_attack(method, setup, config, out)
     click.echo(f"{method} ({reward}) {report.summary()}")
     if video:

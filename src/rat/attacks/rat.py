@@ -35,6 +35,7 @@ from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergrad
 from rat.attacks.threat import Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
 from rat.device import resolve_device
+from rat.envs.physics import physics_of
 from rat.errors import RatError
 from rat.loop import TrainingLoop, write_report
 from rat.plots import plot_training
@@ -261,9 +262,10 @@ class RATTrainer:
             self.success_test = self.target.episode_success()
         obs = self.obs
         action = self.victim_action(obs) if self.behaviour.victim_acts(self.t) else learner.act(obs)
+        physics = physics_of(self.env) if learner.wants_physics else None  # to film the step for a person
         next_obs, _, terminated, truncated, info = self.env.step(action)
         r_target = self.target.reward(obs, action, next_obs, info)
-        self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated))  # labels, r̂, π_θ
+        self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated, physics))  # labels, r̂, π_θ
         if learner.reward_ready and learner.step % cfg.adversary_every == 0:
             for _ in range(cfg.adversary_updates):
                 self.metrics.update(self.adversary_step())  # inner level
@@ -447,8 +449,10 @@ class RAT:
 
     def train(self, setup: AttackSetup, config: RATConfig, out: Path) -> AttackReport:
         oracle = setup.reward == "oracle"  # the setup decides threat, reward source and seed; the config follows
+        # an oracle run learns no r̂ to score snapshots or π_θ with: it keeps the last adversary and imitates π_θ as is
+        scored = {"select": "last", "imitate": "current"} if oracle else {}
         config = replace(config, seed=setup.seed, epsilon=setup.threat.epsilon, norm=setup.threat.norm,
-                         pebble=replace(config.pebble, oracle=oracle))
+                         pebble=replace(config.pebble, oracle=oracle), **scored)
         return train_rat(config, setup, out, setup.tensorboard)
 
     def load(self, run: Path, meta: dict, victim: Victim) -> Perturbation:

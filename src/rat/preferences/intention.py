@@ -22,6 +22,7 @@ from rat import seeds
 from rat.device import resolve_device
 from rat.envs import check_task, get_target, make_task
 from rat.envs.targets import TargetBehaviour
+from rat.envs.physics import physics_of
 from rat.errors import RatError
 from rat.eval import evaluate
 from rat.loop import TrainingLoop, write_report
@@ -131,9 +132,10 @@ class IntentionTrainer:
             self.success_test = self.target.episode_success()
         obs = self.obs
         action = learner.act(obs)
+        physics = physics_of(self.env) if learner.wants_physics else None  # to film the step for a person
         next_obs, _, terminated, truncated, info = self.env.step(action)
         r_target = self.target.reward(obs, action, next_obs, info)
-        self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated))
+        self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated, physics))
         self.ep_return += r_target
         self.succeeded |= self.success_test(info)
         self.obs = next_obs

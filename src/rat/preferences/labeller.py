@@ -6,6 +6,14 @@ round. Anything with ``label`` and ``describe`` can answer: the scripted teacher
 model. Labels follow the one convention of :mod:`rat.preferences.teacher`: ``y`` is the
 probability that the *second* segment is preferred (1, 0, or 0.5 for "equally good"); a query
 left out of the answer's ``index`` was skipped.
+
+Two optional attributes change what the learner does around a labeller:
+
+- ``films_segments = True``: the run records every step's physics state (:mod:`rat.envs.physics`),
+  and the pairs a labeller gets carry it (``SegmentPairs.physics``), to be filmed;
+- ``stores_labels = True``: the labeller writes each answer into the run's label store itself, as
+  it is given (:meth:`~rat.preferences.store.LabelStore.answer`), and closes the round; the learner
+  then stores nothing for it.
 """
 
 from __future__ import annotations

@@ -148,15 +148,21 @@ class PebbleLearner:
             return self.rng.uniform(-1.0, 1.0, self.act_dim).astype(np.float32)
         return self.agent.act(obs, deterministic)
 
-    def observe(self, obs, action, next_obs, target_reward: float, terminated: bool, truncated: bool
-                ) -> dict[str, float]:
-        """Take one transition (with its true target reward, for the scripted teacher) and learn."""
+    @property
+    def wants_physics(self) -> bool:
+        """Whether the labeller films segments, so :meth:`observe` needs each step's physics state."""
+        return bool(getattr(self.labeller, "films_segments", False))
+
+    def observe(self, obs, action, next_obs, target_reward: float, terminated: bool, truncated: bool,
+                physics: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, float]:
+        """Take one transition (with its true target reward, for the scripted teacher) and learn.
+        ``physics``: the physics state at ``obs`` and its episode's scene, when :attr:`wants_physics`."""
         if self.config.oracle:
             reward = float(target_reward)
         else:
             reward = float(self.learned_reward(obs, action)) if self.reward_ready else 0.0
         self.buffer.add(obs, action, reward, next_obs, terminated)
-        self.history.add(obs, action, target_reward, terminated or truncated)
+        self.history.add(obs, action, target_reward, terminated or truncated, physics)
         self.step += 1
         metrics: dict[str, float] = {}
         n = 0 if self.config.oracle else self.schedule.queries_at(self.step, self.asked)
@@ -200,7 +206,8 @@ class PebbleLearner:
         chosen = candidates.select(select_queries(strategy, candidates, n, self.ensemble, self.rng, labelled))
         query = QueryRound(self.round, self.step, self.source, self.task, self.target, self.segment_return_scale())
         labels = self.labeller.label(chosen, self.rng, query)
-        if self.round not in {r["round"] for r in self.store.rounds(self.source)}:
+        stored = getattr(self.labeller, "stores_labels", False)  # answered one at a time, into the store itself
+        if not stored and self.round not in {r["round"] for r in self.store.rounds(self.source)}:
             self.store.add(chosen.select(labels.index), labels.y, self.labeller.describe(), self.source,
                            round=self.round, task=self.task, target=self.target, step=self.step, asked=n)
         self.asked += n

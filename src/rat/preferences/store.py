@@ -12,6 +12,12 @@ Storage is SQLite in write-ahead-log mode with ``synchronous=FULL``:
 
 Segments are stored as little-endian float32 blobs with their shapes. Labels follow the one
 convention of :mod:`rat.preferences.teacher`: ``label`` = P[σ¹ ≻ σ⁰].
+
+Queries a person answers one at a time (:mod:`rat.labelling`) live in the same file: a run
+*publishes* a round's queries, each answer is one transaction that copies the query's segments
+into ``labels`` (or records a skip), and the run *closes* the round when every query is
+answered. A query has at most one answer (a unique key, so a repeated answer cannot be stored
+twice), and a closed round takes no answers and no undos.
 """
 
 from __future__ import annotations
@@ -27,7 +33,8 @@ import numpy as np
 from rat.errors import RatError
 from rat.preferences.segments import SegmentPairs
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+CHOICES = {"left": 0.0, "right": 1.0, "equal": 0.5, "skip": None}  #: a person's answers, as labels (skip: none)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS store_info (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -45,7 +52,9 @@ CREATE TABLE IF NOT EXISTS labels (
     act_dim     INTEGER NOT NULL,
     obs0 BLOB NOT NULL, act0 BLOB NOT NULL, reward0 BLOB NOT NULL,
     obs1 BLOB NOT NULL, act1 BLOB NOT NULL, reward1 BLOB NOT NULL,
-    imported_from TEXT
+    imported_from TEXT,
+    query_id    INTEGER,            -- the published query it answers (labels given one at a time)
+    duration_s  REAL                -- how long the labeller took (people), seconds
 );
 CREATE TABLE IF NOT EXISTS rounds (
     source   TEXT    NOT NULL,
@@ -58,6 +67,47 @@ CREATE TABLE IF NOT EXISTS rounds (
 );
 CREATE INDEX IF NOT EXISTS labels_by_source ON labels (source, round);
 """
+
+# Schema 2: queries published for people, answered one at a time.
+_QUERIES = """
+CREATE TABLE IF NOT EXISTS queries (
+    id          INTEGER PRIMARY KEY AUTOINCREMENT,
+    created_at  TEXT    NOT NULL,
+    source      TEXT    NOT NULL,
+    round       INTEGER NOT NULL,
+    position    INTEGER NOT NULL,   -- index of the query in its round
+    step        INTEGER NOT NULL,
+    task        TEXT,
+    target      TEXT,
+    length      INTEGER NOT NULL,
+    obs_dim     INTEGER NOT NULL,
+    act_dim     INTEGER NOT NULL,
+    obs0 BLOB NOT NULL, act0 BLOB NOT NULL, reward0 BLOB NOT NULL,
+    obs1 BLOB NOT NULL, act1 BLOB NOT NULL, reward1 BLOB NOT NULL,
+    physics     TEXT,               -- JSON shapes of the physics blobs below, when the run recorded them
+    states0 BLOB, states1 BLOB,     -- float64 physics state of every step (rat.envs.physics), to film the
+    scene0 BLOB, scene1 BLOB,       -- segments; and the scene of each segment's episode
+    video0      TEXT,               -- file names, relative to the store's directory
+    video1      TEXT,
+    closed      INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (source, round, position)
+);
+CREATE TABLE IF NOT EXISTS skips (
+    query_id    INTEGER PRIMARY KEY,
+    created_at  TEXT NOT NULL,
+    labeller    TEXT NOT NULL,
+    duration_s  REAL
+);
+CREATE UNIQUE INDEX IF NOT EXISTS labels_by_query ON labels (query_id);
+"""
+
+
+class AnswerError(RatError):
+    """An answer the store refuses; ``status`` is the HTTP status that says why (404, 409, 422)."""
+
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status
 
 
 def _blob(a: np.ndarray) -> bytes:
@@ -104,11 +154,27 @@ class LabelStore:
                 self.db.execute("PRAGMA synchronous=FULL")
                 self.db.executescript(_SCHEMA)
                 self.db.execute("INSERT OR IGNORE INTO store_info VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+                self._migrate()
+                self.db.executescript(_QUERIES)
             version = int(self.db.execute("SELECT value FROM store_info WHERE key='schema_version'").fetchone()[0])
         except sqlite3.DatabaseError as exc:
             raise RatError(f"'{self.path}' is not a readable label store ({exc}); give a rat label store (.sqlite)") from exc
-        if version != SCHEMA_VERSION:
-            raise RatError(f"label store '{self.path}' has schema {version}; this rat reads {SCHEMA_VERSION}")
+        if version > SCHEMA_VERSION:
+            raise RatError(f"label store '{self.path}' has schema {version}; this rat reads up to {SCHEMA_VERSION} "
+                           "(upgrade rat)")
+        self.schema = version
+
+    def _migrate(self) -> None:
+        """Bring a schema-1 store (no query queue) to schema 2, in one transaction."""
+        version = int(self.db.execute("SELECT value FROM store_info WHERE key='schema_version'").fetchone()[0])
+        if version >= SCHEMA_VERSION:
+            return
+        with self._transaction():
+            columns = {row[1] for row in self.db.execute("PRAGMA table_info(labels)")}
+            for column, kind in (("query_id", "INTEGER"), ("duration_s", "REAL")):
+                if column not in columns:
+                    self.db.execute(f"ALTER TABLE labels ADD COLUMN {column} {kind}")
+            self.db.execute("UPDATE store_info SET value=? WHERE key='schema_version'", (str(SCHEMA_VERSION),))
 
     def close(self) -> None:
         self.db.close()
@@ -167,6 +233,10 @@ class LabelStore:
         if source is None:
             return self.db.execute("SELECT COUNT(*) FROM labels").fetchone()[0]
         return self.db.execute("SELECT COUNT(*) FROM labels WHERE source=?", (source,)).fetchone()[0]
+
+    def count_answered(self) -> int:
+        """Labels given one at a time, as answers to published queries (a person's, or the teacher's after a timeout)."""
+        return self.db.execute("SELECT COUNT(*) FROM labels WHERE query_id IS NOT NULL").fetchone()[0]
 
     def rounds(self, source: str) -> list[dict]:
         cur = self.db.execute("SELECT round, step, asked, answered, created_at FROM rounds WHERE source=? ORDER BY round",
@@ -242,11 +312,172 @@ class LabelStore:
     def _insert_row(self, row: dict, pair: SegmentPairs, y: float, in_transaction: bool = False) -> None:
         values = (row["created_at"], row["source"], row["round"], row["task"], row["target"],
                   json.dumps(row["labeller"], sort_keys=True), float(y), row["length"], row["obs_dim"], row["act_dim"],
-                  *(_blob(a[0]) for a in pair.arrays()), row.get("imported_from"))
+                  *(_blob(a[0]) for a in pair.arrays()), row.get("imported_from"), row.get("duration_s"))
         sql = ("INSERT INTO labels (created_at, source, round, task, target, labeller, label, length, obs_dim, act_dim,"
-               " obs0, act0, reward0, obs1, act1, reward1, imported_from) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)")
+               " obs0, act0, reward0, obs1, act1, reward1, imported_from, duration_s)"
+               " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)")
         if in_transaction:
             self.db.execute(sql, values)
         else:
             with self._transaction():
                 self.db.execute(sql, values)
+
+    # --- queries answered one at a time (people) ------------------------------------------------------
+
+    def publish(self, pairs: SegmentPairs, source: str, round: int, step: int, task: str | None = None,
+                target: str | None = None) -> list[int]:
+        """Publish a round's queries (with their physics states, if ``pairs`` has them) for answering
+        one at a time; returns their ids in order.
+
+        Publishing a round that is already published (a run resumed while it waited) changes
+        nothing and returns the ids it has.
+        """
+        existing = self.query_ids(source, round)
+        if existing:
+            return existing
+        length, obs_dim = pairs.obs0.shape[1:]
+        act_dim, when = pairs.act0.shape[2], _now()
+        physics = pairs.physics_arrays()
+        shapes = json.dumps({"state": physics[0].shape[2], "scene": physics[2].shape[1]}) if physics else None
+
+        def physics_blobs(i):
+            return [np.ascontiguousarray(a[i], "<f8").tobytes() for a in physics] if physics else [None] * 4
+
+        rows = [(when, source, round, i, step, task, target, length, obs_dim, act_dim,
+                 *(_blob(a[i]) for a in pairs.arrays()), shapes, *physics_blobs(i)) for i in range(len(pairs))]
+        with self._transaction():
+            self.db.executemany(
+                "INSERT INTO queries (created_at, source, round, position, step, task, target, length, obs_dim, act_dim,"
+                " obs0, act0, reward0, obs1, act1, reward1, physics, states0, states1, scene0, scene1)"
+                " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)", rows)
+        return self.query_ids(source, round)
+
+    def query_pairs(self, ids: list[int]) -> SegmentPairs:
+        """The segments of published queries, in the order of ``ids`` (with physics states if recorded)."""
+        found = {}
+        for row in self.db.execute(f"SELECT * FROM queries WHERE id IN ({','.join('?' * len(ids))})",
+                                   [int(i) for i in ids]):
+            found[row[0]] = dict(zip([d[0] for d in self.db.execute("SELECT * FROM queries LIMIT 0").description], row))
+        missing = [i for i in ids if i not in found]
+        if missing:
+            raise RatError(f"no published query {missing[0]} in '{self.path}'")
+        rows = [found[i] for i in ids]
+        L, d, a = rows[0]["length"], rows[0]["obs_dim"], rows[0]["act_dim"]
+        shapes = {"obs0": (L, d), "act0": (L, a), "reward0": (L,), "obs1": (L, d), "act1": (L, a), "reward1": (L,)}
+        arrays = [np.stack([np.frombuffer(r[k], "<f4").reshape(shape) for r in rows]) for k, shape in shapes.items()]
+        pairs = SegmentPairs(*(x.astype(np.float32) for x in arrays))
+        if rows[0]["physics"]:
+            sizes = json.loads(rows[0]["physics"])
+            shapes = {"states0": (L, sizes["state"]), "states1": (L, sizes["state"]), "scene0": (sizes["scene"],),
+                      "scene1": (sizes["scene"],)}
+            pairs.physics = tuple(np.stack([np.frombuffer(r[k], "<f8").reshape(shape) for r in rows])
+                                  for k, shape in shapes.items())
+        return pairs
+
+    def set_videos(self, query_id: int, video0: str, video1: str) -> None:
+        """Record the videos of a query (file names relative to the store's directory)."""
+        with self._transaction():
+            self.db.execute("UPDATE queries SET video0=?, video1=? WHERE id=?", (video0, video1, int(query_id)))
+
+    def query_ids(self, source: str, round: int) -> list[int]:
+        return [i for (i,) in self.db.execute("SELECT id FROM queries WHERE source=? AND round=? ORDER BY position",
+                                               (source, round))]
+
+    def queries(self, source: str | None = None, open_only: bool = True) -> list[dict]:
+        """Published queries (no segments), oldest first, each with its answer if it has one:
+        ``answer`` is left, right, equal, skip or None."""
+        sql = ("SELECT q.id, q.source, q.round, q.position, q.step, q.task, q.target, q.video0, q.video1, q.closed,"
+               " l.label, s.query_id IS NOT NULL FROM queries q LEFT JOIN labels l ON l.query_id = q.id"
+               " LEFT JOIN skips s ON s.query_id = q.id")
+        clauses, args = [], []
+        if source is not None:
+            clauses.append("q.source=?")
+            args.append(source)
+        if open_only:
+            clauses.append("q.closed=0")
+        sql += (" WHERE " + " AND ".join(clauses) if clauses else "") + " ORDER BY q.id"
+        names = {0.0: "left", 1.0: "right", 0.5: "equal"}
+        out = []
+        for *head, label, skipped in self.db.execute(sql, args):
+            row = dict(zip(("id", "source", "round", "position", "step", "task", "target", "video0", "video1",
+                            "closed"), head))
+            row["closed"] = bool(row["closed"])
+            row["answer"] = "skip" if skipped else names.get(label) if label is not None else None
+            out.append(row)
+        return out
+
+    def answer(self, query_id: int, choice: str, labeller: dict, duration_s: float | None = None) -> int | None:
+        """Store one answer to a published query, durably; returns the new label's id (None for a skip).
+
+        Raises :class:`AnswerError` for an unknown query (404), a query already answered or in a
+        closed round (409), or a choice or duration that is not one (422); nothing is stored then.
+        """
+        if choice not in CHOICES:
+            raise AnswerError(f"unknown answer '{choice}'; use one of: {', '.join(CHOICES)}", 422)
+        if duration_s is not None and not (isinstance(duration_s, (int, float)) and 0 <= duration_s < 1e6):
+            raise AnswerError(f"duration must be a number of seconds >= 0, got {duration_s!r}", 422)
+        who, when = json.dumps(labeller, sort_keys=True), _now()
+        with self._transaction():
+            found = self.db.execute("SELECT closed FROM queries WHERE id=?", (int(query_id),)).fetchone()
+            if found is None:
+                raise AnswerError(f"no query {query_id}", 404)
+            if found[0]:
+                raise AnswerError(f"query {query_id} is in a closed round; it takes no answers", 409)
+            if self._answered(query_id):
+                raise AnswerError(f"query {query_id} is already answered; undo it first to change the answer", 409)
+            if CHOICES[choice] is None:
+                self.db.execute("INSERT INTO skips VALUES (?,?,?,?)", (int(query_id), when, who, duration_s))
+                return None
+            cur = self.db.execute(
+                "INSERT INTO labels (created_at, source, round, task, target, labeller, label, length, obs_dim, act_dim,"
+                " obs0, act0, reward0, obs1, act1, reward1, query_id, duration_s)"
+                " SELECT ?, source, round, task, target, ?, ?, length, obs_dim, act_dim,"
+                " obs0, act0, reward0, obs1, act1, reward1, id, ? FROM queries WHERE id=?",
+                (when, who, CHOICES[choice], duration_s, int(query_id)))
+            return cur.lastrowid
+
+    def _answered(self, query_id: int) -> bool:
+        return bool(self.db.execute("SELECT EXISTS(SELECT 1 FROM labels WHERE query_id=?) OR "
+                                    "EXISTS(SELECT 1 FROM skips WHERE query_id=?)", (query_id, query_id)).fetchone()[0])
+
+    def undo(self, labeller_name: str) -> int | None:
+        """Withdraw the latest answer that ``labeller_name`` gave to a query of an open round; returns
+        that query's id (None if there is none to withdraw)."""
+        with self._transaction():
+            latest = self.db.execute(
+                "SELECT kind, query_id FROM ("
+                " SELECT 'label' AS kind, l.query_id, l.created_at, l.id AS n FROM labels l JOIN queries q ON q.id = l.query_id"
+                "  WHERE q.closed=0 AND json_extract(l.labeller, '$.name')=?"
+                " UNION ALL"
+                " SELECT 'skip', s.query_id, s.created_at, 0 FROM skips s JOIN queries q ON q.id = s.query_id"
+                "  WHERE q.closed=0 AND json_extract(s.labeller, '$.name')=?)"
+                " ORDER BY created_at DESC, n DESC LIMIT 1", (labeller_name, labeller_name)).fetchone()
+            if latest is None:
+                return None
+            kind, query_id = latest
+            self.db.execute(f"DELETE FROM {'labels' if kind == 'label' else 'skips'} WHERE query_id=?", (query_id,))
+            return query_id
+
+    def close_round(self, source: str, round: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """Close a published round and record it; returns the positions answered with a label and
+        their labels (skips are left out)."""
+        with self._transaction():
+            self.db.execute("UPDATE queries SET closed=1 WHERE source=? AND round=?", (source, round))
+            rows = self.db.execute("SELECT q.position, l.label FROM queries q JOIN labels l ON l.query_id = q.id"
+                                   " WHERE q.source=? AND q.round=? ORDER BY q.position", (source, round)).fetchall()
+            asked = self.db.execute("SELECT COUNT(*) FROM queries WHERE source=? AND round=?", (source, round)).fetchone()[0]
+            self.db.execute("INSERT OR REPLACE INTO rounds VALUES (?,?,?,?,?,?)",
+                            (source, round, step, asked, len(rows), _now()))
+        return np.asarray([r[0] for r in rows], dtype=np.int64), np.asarray([r[1] for r in rows], dtype=np.float64)
+
+    def video_path(self, query_id: int, side: int) -> Path | None:
+        """The file of a query's video (side 0 or 1), or None: only names the store recorded, inside
+        the store's own directory, are ever served."""
+        if side not in (0, 1):
+            return None
+        row = self.db.execute(f"SELECT video{side} FROM queries WHERE id=?", (int(query_id),)).fetchone()
+        if row is None or not row[0]:
+            return None
+        root = self.path.parent.resolve()
+        path = (root / row[0]).resolve()
+        return path if path.is_relative_to(root) and path.is_file() else None
