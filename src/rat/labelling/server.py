@@ -80,6 +80,14 @@ def create_app(store_path: str | Path, token: str | None = None, wait_for_store:
 
     page = resources.files("rat.labelling").joinpath("static/index.html").read_text()
 
+    def described(target: str | None) -> str | None:
+        from rat.envs import get_target
+
+        try:
+            return get_target(target).description if target else None
+        except RatError:  # a target this process does not know (a plugin's): its name says what it is
+            return target
+
     @app.get("/", response_class=HTMLResponse)
     def index():
         return page
@@ -92,7 +100,7 @@ def create_app(store_path: str | Path, token: str | None = None, wait_for_store:
         s = store()
         queries = s.queries(open_only=True)
         ready = [{"id": q["id"], "source": q["source"], "round": q["round"], "position": q["position"],
-                  "task": q["task"], "target": q["target"], "videos": [f"videos/{q['id']}/0", f"videos/{q['id']}/1"]}
+                  "task": q["task"], "target": q["target"], "description": described(q["target"]), "videos": [f"videos/{q['id']}/0", f"videos/{q['id']}/1"]}
                  for q in queries if q["video0"] and q["answer"] is None]
         return {"queries": ready,
                 "round": {"total": len(queries), "answered": sum(q["answer"] is not None for q in queries),
