@@ -89,7 +89,6 @@ class WebLabeller:
         self.store_path, self.config = Path(store_path), config.with_token()
         self.teacher, self.progress = teacher or ScriptedTeacher(), progress
         self._server: threading.Thread | None = None
-        self._film_env = None
 
     def describe(self) -> dict:
         return {"type": "human", "via": "web"}
@@ -122,26 +121,24 @@ class WebLabeller:
         todo = [q["id"] for q in store.queries() if q["id"] in set(ids) and q["video0"] is None]
         if not todo:
             return
+        from rat.envs import LOCOMOTION_TASKS, make_task
+
         pairs = store.query_pairs(todo)
         states0, states1, scene0, scene1 = pairs.physics
-        env = self._env(task)
+        env = make_task(task, render_mode="rgb_array",
+                        **({} if task in LOCOMOTION_TASKS else {"size": self.config.frame_size}))
+        env.reset(seed=0)
         folder = Path("queries") / f"{ids[0]}-{ids[-1]}"
-        for k, query_id in enumerate(todo):
-            names = []
-            for side, (states, scene) in enumerate(((states0[k], scene0[k]), (states1[k], scene1[k]))):
-                name = folder / f"{query_id}-{side}.mp4"
-                write_video(render_states(env, states, scene), self.store_path.parent / name, fps=self.config.fps)
-                names.append(name.as_posix())
-            store.set_videos(query_id, *names)
-
-    def _env(self, task: str):
-        if self._film_env is None or self._film_env[0] != task:
-            from rat.envs import LOCOMOTION_TASKS, make_task
-
-            size = {} if task in LOCOMOTION_TASKS else {"size": self.config.frame_size}
-            self._film_env = (task, make_task(task, render_mode="rgb_array", **size))
-            self._film_env[1].reset(seed=0)
-        return self._film_env[1]
+        try:
+            for k, query_id in enumerate(todo):
+                names = []
+                for side, (states, scene) in enumerate(((states0[k], scene0[k]), (states1[k], scene1[k]))):
+                    name = folder / f"{query_id}-{side}.mp4"
+                    write_video(render_states(env, states, scene), self.store_path.parent / name, fps=self.config.fps)
+                    names.append(name.as_posix())
+                store.set_videos(query_id, *names)
+        finally:
+            env.close()  # its GL context goes now, not in a noisy interpreter teardown
 
     def _wait(self, store: LabelStore, ids: list[int], rng: np.random.Generator, query: QueryRound) -> None:
         from tqdm.auto import tqdm
