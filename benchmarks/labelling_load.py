@@ -133,7 +133,7 @@ def run(clients: int, answers: int, kill_at: int | None = None, folder: Path | N
     with LabelStore(store, read_only=True) as s:
         stored = {q["id"]: q["answer"] for q in s.queries(open_only=False)}
         label_rows = s.db.execute("SELECT COUNT(*), COUNT(DISTINCT query_id) FROM labels").fetchone()
-        skip_rows = s.db.execute("SELECT COUNT(*) FROM skips").fetchone()[0]
+        skip_rows = s.db.execute("SELECT COUNT(*) FROM answers WHERE choice='skip'").fetchone()[0]
     lost = [q for q, choice in acked.items() if stored.get(q) != choice]
     unanswered = sum(a is None for a in stored.values())
     lat = np.asarray(latencies) * 1000

@@ -102,9 +102,11 @@ class WebLabeller:
         self.serve()
         with LabelStore(self.store_path) as store:
             ids = store.publish(pairs, query.source, query.round, query.step, query.task, query.target)
-            self._announce(query, len(ids))
-            self._film(store, ids, query.task)
-            self._wait(store, ids, rng, query)
+            closed = {q["id"] for q in store.queries(query.source, open_only=False) if q["closed"]}
+            if not closed & set(ids):  # else the run closed this round before it was interrupted
+                self._announce(query, len(ids))
+                self._film(store, ids, query.task)
+                self._wait(store, ids, rng, query)
             index, y = store.close_round(query.source, query.round, query.step)
         return Labels(index, y)
 
@@ -115,14 +117,13 @@ class WebLabeller:
 
     def _film(self, store: LabelStore, ids: list[int], task: str) -> None:
         """Film every query of the round that has no videos yet, in order."""
-        from rat.eval import write_video
+        from rat.envs import LOCOMOTION_TASKS, make_task
         from rat.envs.physics import render_states
+        from rat.eval import write_video
 
         todo = [q["id"] for q in store.queries() if q["id"] in set(ids) and q["video0"] is None]
         if not todo:
             return
-        from rat.envs import LOCOMOTION_TASKS, make_task
-
         pairs = store.query_pairs(todo)
         states0, states1, scene0, scene1 = pairs.physics
         env = make_task(task, render_mode="rgb_array",

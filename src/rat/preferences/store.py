@@ -14,10 +14,11 @@ Segments are stored as little-endian float32 blobs with their shapes. Labels fol
 convention of :mod:`rat.preferences.teacher`: ``label`` = P[σ¹ ≻ σ⁰].
 
 Queries a person answers one at a time (:mod:`rat.labelling`) live in the same file: a run
-*publishes* a round's queries, each answer is one transaction that copies the query's segments
-into ``labels`` (or records a skip), and the run *closes* the round when every query is
-answered. A query has at most one answer (a unique key, so a repeated answer cannot be stored
-twice), and a closed round takes no answers and no undos.
+*publishes* a round's queries, each answer is one transaction that logs it in ``answers`` (in
+the order given; undo withdraws the latest) and, unless it is a skip, copies the query's segments
+into ``labels``; the run *closes* the round when every query is answered. A query has at most
+one answer (a unique key, so a repeated answer cannot be stored twice), and a closed round takes
+no answers and no undos.
 """
 
 from __future__ import annotations
@@ -92,10 +93,12 @@ CREATE TABLE IF NOT EXISTS queries (
     closed      INTEGER NOT NULL DEFAULT 0,
     UNIQUE (source, round, position)
 );
-CREATE TABLE IF NOT EXISTS skips (
-    query_id    INTEGER PRIMARY KEY,
-    created_at  TEXT NOT NULL,
-    labeller    TEXT NOT NULL,
+CREATE TABLE IF NOT EXISTS answers (   -- every answer to a published query, in the order given
+    id          INTEGER PRIMARY KEY AUTOINCREMENT,
+    query_id    INTEGER NOT NULL UNIQUE,
+    choice      TEXT    NOT NULL,   -- left, right, equal or skip (a label row holds the first three too)
+    labeller    TEXT    NOT NULL,
+    created_at  TEXT    NOT NULL,
     duration_s  REAL
 );
 CREATE UNIQUE INDEX IF NOT EXISTS labels_by_query ON labels (query_id);
@@ -387,8 +390,7 @@ class LabelStore:
         """Published queries (no segments), oldest first, each with its answer if it has one:
         ``answer`` is left, right, equal, skip or None."""
         sql = ("SELECT q.id, q.source, q.round, q.position, q.step, q.task, q.target, q.video0, q.video1, q.closed,"
-               " l.label, s.query_id IS NOT NULL FROM queries q LEFT JOIN labels l ON l.query_id = q.id"
-               " LEFT JOIN skips s ON s.query_id = q.id")
+               " a.choice FROM queries q LEFT JOIN answers a ON a.query_id = q.id")
         clauses, args = [], []
         if source is not None:
             clauses.append("q.source=?")
@@ -396,14 +398,11 @@ class LabelStore:
         if open_only:
             clauses.append("q.closed=0")
         sql += (" WHERE " + " AND ".join(clauses) if clauses else "") + " ORDER BY q.id"
-        names = {0.0: "left", 1.0: "right", 0.5: "equal"}
         out = []
-        for *head, label, skipped in self.db.execute(sql, args):
+        for *head, choice in self.db.execute(sql, args):
             row = dict(zip(("id", "source", "round", "position", "step", "task", "target", "video0", "video1",
                             "closed"), head))
-            row["closed"] = bool(row["closed"])
-            row["answer"] = "skip" if skipped else names.get(label) if label is not None else None
-            out.append(row)
+            out.append(row | {"closed": bool(row["closed"]), "answer": choice})
         return out
 
     def answer(self, query_id: int, choice: str, labeller: dict, duration_s: float | None = None) -> int | None:
@@ -425,8 +424,9 @@ class LabelStore:
                 raise AnswerError(f"query {query_id} is in a closed round; it takes no answers", 409)
             if self._answered(query_id):
                 raise AnswerError(f"query {query_id} is already answered; undo it first to change the answer", 409)
+            self.db.execute("INSERT INTO answers (query_id, choice, labeller, created_at, duration_s) VALUES (?,?,?,?,?)",
+                            (int(query_id), choice, who, when, duration_s))
             if CHOICES[choice] is None:
-                self.db.execute("INSERT INTO skips VALUES (?,?,?,?)", (int(query_id), when, who, duration_s))
                 return None
             cur = self.db.execute(
                 "INSERT INTO labels (created_at, source, round, task, target, labeller, label, length, obs_dim, act_dim,"
@@ -437,25 +437,21 @@ class LabelStore:
             return cur.lastrowid
 
     def _answered(self, query_id: int) -> bool:
-        return bool(self.db.execute("SELECT EXISTS(SELECT 1 FROM labels WHERE query_id=?) OR "
-                                    "EXISTS(SELECT 1 FROM skips WHERE query_id=?)", (query_id, query_id)).fetchone()[0])
+        return self.db.execute("SELECT 1 FROM answers WHERE query_id=?", (int(query_id),)).fetchone() is not None
 
     def undo(self, labeller_name: str) -> int | None:
         """Withdraw the latest answer that ``labeller_name`` gave to a query of an open round; returns
         that query's id (None if there is none to withdraw)."""
         with self._transaction():
             latest = self.db.execute(
-                "SELECT kind, query_id FROM ("
-                " SELECT 'label' AS kind, l.query_id, l.created_at, l.id AS n FROM labels l JOIN queries q ON q.id = l.query_id"
-                "  WHERE q.closed=0 AND json_extract(l.labeller, '$.name')=?"
-                " UNION ALL"
-                " SELECT 'skip', s.query_id, s.created_at, 0 FROM skips s JOIN queries q ON q.id = s.query_id"
-                "  WHERE q.closed=0 AND json_extract(s.labeller, '$.name')=?)"
-                " ORDER BY created_at DESC, n DESC LIMIT 1", (labeller_name, labeller_name)).fetchone()
+                "SELECT a.id, a.query_id FROM answers a JOIN queries q ON q.id = a.query_id"
+                " WHERE q.closed=0 AND json_extract(a.labeller, '$.name')=? ORDER BY a.id DESC LIMIT 1",
+                (labeller_name,)).fetchone()
             if latest is None:
                 return None
-            kind, query_id = latest
-            self.db.execute(f"DELETE FROM {'labels' if kind == 'label' else 'skips'} WHERE query_id=?", (query_id,))
+            answer_id, query_id = latest
+            self.db.execute("DELETE FROM answers WHERE id=?", (answer_id,))
+            self.db.execute("DELETE FROM labels WHERE query_id=?", (query_id,))
             return query_id
 
     def close_round(self, source: str, round: int, step: int) -> tuple[np.ndarray, np.ndarray]:
