@@ -120,3 +120,17 @@ def test_imitating_the_best_intention_policy_keeps_it_scores_it_by_r_hat_and_che
     assert report.details["adversary_updates"] > 0
     with pytest.raises(RatError, match="imitate must be current or best"):
         small_config(imitate="peak")
+
+
+def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_the_live_intention_policy():
+    from dataclasses import replace
+
+    from rat.attacks.rat import RAT
+    from rat.experiments.presets import rat_config
+
+    config = rat_config("cpu")  # scores snapshots and π_θ with r̂, which an oracle run never learns
+    assert (config.select, config.imitate) == ("reward", "best")
+    oracle = RAT.configure(replace(setup(), reward="oracle"), config)
+    assert oracle.pebble.oracle and (oracle.select, oracle.imitate) == ("last", "current")
+    labelled = RAT.configure(setup(), config)
+    assert not labelled.pebble.oracle and (labelled.select, labelled.imitate) == ("reward", "best")

@@ -23,6 +23,20 @@ class Interrupt(Exception):
     pass
 
 
+def die_at_sac_update(monkeypatch, n: int):
+    """Make SAC's ``n``-th update raise :class:`Interrupt` (a killed run); returns the real update."""
+    real, calls = training.SAC.update, {"n": 0}
+
+    def update_then_die(self, batch):
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise Interrupt
+        return real(self, batch)
+
+    monkeypatch.setattr(training.SAC, "update", update_then_die)
+    return real
+
+
 @pytest.mark.slow
 def test_bc_resumes_after_interruption_and_matches_an_uninterrupted_run(tmp_path, monkeypatch):
     whole, _ = train_victim(TINY_BC, tmp_path / "whole", progress=False)
@@ -50,16 +64,7 @@ def test_bc_resumes_after_interruption_and_matches_an_uninterrupted_run(tmp_path
 
 @pytest.mark.slow
 def test_sac_resumes_from_its_last_checkpoint(tmp_path, monkeypatch):
-    real_update = training.SAC.update
-    calls = {"n": 0}
-
-    def update_then_die(self, batch):
-        calls["n"] += 1
-        if calls["n"] == 300:  # updates start at step 200, so this is step 499: last checkpoint at 250
-            raise Interrupt
-        return real_update(self, batch)
-
-    monkeypatch.setattr(training.SAC, "update", update_then_die)
+    real_update = die_at_sac_update(monkeypatch, 300)  # updates start at step 200: step 499, last checkpoint at 250
     with pytest.raises(Interrupt):
         train_victim(TINY_SAC, tmp_path / "run", progress=False)
     state, meta = load_checkpoint(tmp_path / "run" / "checkpoint")
@@ -120,15 +125,7 @@ def test_sac_saves_its_best_evaluated_actor_and_keeps_it_across_a_resume(tmp_pat
         return result
 
     monkeypatch.setattr(training, "evaluate", scored)
-    real_update, calls = training.SAC.update, {"n": 0}
-
-    def update_then_die(self, batch):
-        calls["n"] += 1
-        if calls["n"] == 350:  # step 549: after the second evaluation and the 500 checkpoint
-            raise Interrupt
-        return real_update(self, batch)
-
-    monkeypatch.setattr(training.SAC, "update", update_then_die)
+    real_update = die_at_sac_update(monkeypatch, 350)  # step 549: after the second evaluation and the 500 checkpoint
     with pytest.raises(Interrupt):
         train_victim(cfg, tmp_path / "run", progress=False)
     state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")

@@ -60,13 +60,14 @@ def set_option(what: str):
 
 
 def labeller_options(f):
-    """``--labeller scripted|web`` and where and how long the labelling page waits for a person."""
+    """``--labeller scripted|web`` and where and how long the labelling page waits for a person
+    (defaults: :class:`rat.labelling.WebLabellingConfig`'s)."""
     options = [
         click.option("--labeller", type=click.Choice(["scripted", "web"]), default="scripted", show_default=True,
                      help="who answers the preference queries: the scripted teacher, or a person on the labelling page"),
-        click.option("--web-host", default="127.0.0.1", show_default=True,
-                     help="--labeller web: address of the page (any but loopback needs the printed token)"),
-        click.option("--web-port", type=int, default=8765, show_default=True, help="--labeller web: port of the page"),
+        click.option("--web-host", default=None,
+                     help="--labeller web: address of the page (any but loopback needs the printed token) [127.0.0.1]"),
+        click.option("--web-port", type=int, default=None, help="--labeller web: port of the page [8765]"),
         click.option("--web-timeout", type=float, default=None,
                      help="--labeller web: seconds a round waits for answers [until all are answered]"),
         click.option("--web-fallback", is_flag=True,
@@ -77,10 +78,11 @@ def labeller_options(f):
     return f
 
 
-def make_labeller(kind: str, out: Path, teacher, host: str, port: int, timeout: float | None, fallback: bool):
+def make_labeller(kind: str, out: Path, teacher, host: str | None, port: int | None, timeout: float | None,
+                  fallback: bool):
     """The labeller a run asks (None: the run's own scripted teacher); a web one starts serving and says where."""
     if kind == "scripted":
-        if (host, port, timeout, fallback) != ("127.0.0.1", 8765, None, False):
+        if host is not None or port is not None or timeout is not None or fallback:
             raise RatError("--web-host, --web-port, --web-timeout and --web-fallback apply to --labeller web; add it")
         return None
     from rat.labelling import WebLabeller, WebLabellingConfig
@@ -88,8 +90,8 @@ def make_labeller(kind: str, out: Path, teacher, host: str, port: int, timeout: 
 
     if fallback and timeout is None:
         raise RatError("--web-fallback answers after a timeout; give --web-timeout SECONDS too")
-    labeller = WebLabeller(out / "labels.sqlite", WebLabellingConfig(host, port, timeout_s=timeout, fallback=fallback),
-                           ScriptedTeacher(teacher))
+    given = {k: v for k, v in {"host": host, "port": port, "timeout_s": timeout}.items() if v is not None}
+    labeller = WebLabeller(out / "labels.sqlite", WebLabellingConfig(**given, fallback=fallback), ScriptedTeacher(teacher))
     labeller.serve()
     click.echo(f"label the queries of this run at {labeller.config.url()} (the run waits at each feedback round)")
     return labeller
@@ -410,8 +412,8 @@ def labels_import(store, src, source) -> None:
 
 @labels.command("serve")
 @click.argument("where", type=click.Path(path_type=Path))
-@click.option("--host", default="127.0.0.1", show_default=True, help="address (any but loopback needs the token)")
-@click.option("--port", type=int, default=8765, show_default=True)
+@click.option("--host", default=None, help="address (any but loopback needs the token) [127.0.0.1]")
+@click.option("--port", type=int, default=None, help="[8765]")
 @click.option("--token", default=None, help="access token [generated off loopback]")
 def labels_serve(where, host, port, token) -> None:
     """Serve the labelling page for WHERE (a run directory or its labels.sqlite) until interrupted.
@@ -423,7 +425,8 @@ def labels_serve(where, host, port, token) -> None:
 
     store = where / "labels.sqlite" if where.is_dir() else where
     _open_store(store).close()
-    config = WebLabellingConfig(host, port, token).with_token()
+    given = {k: v for k, v in {"host": host, "port": port, "token": token}.items() if v is not None}
+    config = WebLabellingConfig(**given).with_token()
     click.echo(f"labelling page for {store} at {config.url()} (Ctrl-C stops it; nothing is lost)")
     serve(store, config)
 

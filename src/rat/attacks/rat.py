@@ -448,12 +448,16 @@ class RAT:
     """RAT: the adversary imitates an intention policy learned from preference labels (the paper's method)."""
 
     def train(self, setup: AttackSetup, config: RATConfig, out: Path) -> AttackReport:
-        oracle = setup.reward == "oracle"  # the setup decides threat, reward source and seed; the config follows
-        # an oracle run learns no r̂ to score snapshots or π_θ with: it keeps the last adversary and imitates π_θ as is
+        return train_rat(self.configure(setup, config), setup, out, setup.tensorboard)
+
+    @staticmethod
+    def configure(setup: AttackSetup, config: RATConfig) -> RATConfig:
+        """``config`` as the setup decides it: threat, reward source and seed. An oracle run learns no r̂
+        to score snapshots or π_θ with, so it keeps the last adversary and imitates π_θ as it is."""
+        oracle = setup.reward == "oracle"
         scored = {"select": "last", "imitate": "current"} if oracle else {}
-        config = replace(config, seed=setup.seed, epsilon=setup.threat.epsilon, norm=setup.threat.norm,
-                         pebble=replace(config.pebble, oracle=oracle), **scored)
-        return train_rat(config, setup, out, setup.tensorboard)
+        return replace(config, seed=setup.seed, epsilon=setup.threat.epsilon, norm=setup.threat.norm,
+                       pebble=replace(config.pebble, oracle=oracle), **scored)
 
     def load(self, run: Path, meta: dict, victim: Victim) -> Perturbation:
         return adversary_function(load_adversary(run)[0])

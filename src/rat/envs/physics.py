@@ -34,12 +34,6 @@ def _model_data(env: gym.Env):
     return inner.model, inner.data
 
 
-def physics_state_size(env: gym.Env) -> int:
-    """Floats in one physics state of ``env``."""
-    model, _ = _model_data(env)
-    return int(mujoco.mj_stateSize(model, _SPEC))
-
-
 def physics_state(env: gym.Env) -> np.ndarray:
     """The full physics state of ``env`` now (float64)."""
     model, data = _model_data(env)

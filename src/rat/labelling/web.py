@@ -18,7 +18,7 @@ from __future__ import annotations
 import secrets
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,8 +61,6 @@ class WebLabellingConfig:
     def with_token(self) -> "WebLabellingConfig":
         """This configuration with a token generated where one is needed and none was given."""
         if self.needs_token and not self.token:
-            from dataclasses import replace
-
             return replace(self, token=secrets.token_urlsafe(24))
         return self
 

@@ -43,9 +43,6 @@ class SegmentPairs:
     def arrays(self) -> tuple[np.ndarray, ...]:
         return self.obs0, self.act0, self.reward0, self.obs1, self.act1, self.reward1
 
-    def physics_arrays(self) -> tuple[np.ndarray, ...] | None:
-        return self.physics
-
 
 class EpisodeHistory:
     """The most recent complete episodes, for drawing segments.
@@ -108,21 +105,22 @@ class EpisodeHistory:
             raise RatError(f"no episode has {length} steps yet to draw segments from; "
                            "start the first query round later or shorten the segments")
         filmed = all(len(e) == 5 for e in usable)
-        halves, physics = [], []
+        halves, states, scenes = [], [], []
         for _ in range(2):
             ep = rng.integers(0, len(usable), size=n)
-            parts, states, scenes = [], [], []
+            parts, half_states, half_scenes = [], [], []
             for i in ep:
                 episode = usable[i]
                 start = rng.integers(0, len(episode[0]) - length + 1)
                 parts.append(tuple(x[start:start + length] for x in episode[:3]))
                 if filmed:
-                    states.append(episode[3][start:start + length])
-                    scenes.append(episode[4])
+                    half_states.append(episode[3][start:start + length])
+                    half_scenes.append(episode[4])
             halves.append([np.stack(x) for x in zip(*parts)])
-            physics.append((np.stack(states), np.stack(scenes)) if filmed else None)
-        return SegmentPairs(*halves[0], *halves[1], physics=(physics[0][0], physics[1][0], physics[0][1],
-                                                             physics[1][1]) if filmed else None)
+            states.append(half_states)
+            scenes.append(half_scenes)
+        physics = tuple(np.stack(x) for x in (*states, *scenes)) if filmed else None  # states0, states1, scene0, scene1
+        return SegmentPairs(*halves[0], *halves[1], physics=physics)
 
     def state_dict(self) -> dict:
         current = [np.asarray(self._obs), np.asarray(self._act), np.asarray(self._rew, np.float32)]

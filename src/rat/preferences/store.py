@@ -117,6 +117,14 @@ def _blob(a: np.ndarray) -> bytes:
     return np.ascontiguousarray(a, dtype="<f4").tobytes()
 
 
+def _segments(rows: list[dict]) -> SegmentPairs:
+    """The segment pairs stored in rows of ``labels`` or ``queries`` (their blobs are popped from the rows)."""
+    L, d, a = rows[0]["length"], rows[0]["obs_dim"], rows[0]["act_dim"]
+    shapes = {"obs0": (L, d), "act0": (L, a), "reward0": (L,), "obs1": (L, d), "act1": (L, a), "reward1": (L,)}
+    return SegmentPairs(*(np.stack([np.frombuffer(row.pop(key), dtype="<f4").reshape(shape) for row in rows])
+                          .astype(np.float32) for key, shape in shapes.items()))
+
+
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
@@ -261,22 +269,18 @@ class LabelStore:
             args.extend(int(i) for i in ids)
         if clauses:
             query += " WHERE " + " AND ".join(clauses)
-        cur = self.db.execute(query + " ORDER BY id", args)
-        names = [d[0] for d in cur.description]
-        arrays: list[list[np.ndarray]] = [[] for _ in range(6)]
-        y, rows = [], []
-        for values in cur:
-            row = dict(zip(names, values))
-            L, d, a = row["length"], row["obs_dim"], row["act_dim"]
-            shapes = [(L, d), (L, a), (L,), (L, d), (L, a), (L,)]
-            for k, (key, shape) in enumerate(zip(("obs0", "act0", "reward0", "obs1", "act1", "reward1"), shapes)):
-                arrays[k].append(np.frombuffer(row.pop(key), dtype="<f4").reshape(shape))
-            y.append(row["label"])
-            row["labeller"] = json.loads(row["labeller"])
-            rows.append(row)
+        rows = self._rows(query + " ORDER BY id", args)
         if not rows:
             return LabelSet(SegmentPairs(*(np.zeros((0,)) for _ in range(6))), np.zeros(0), [])
-        return LabelSet(SegmentPairs(*(np.stack(a).astype(np.float32) for a in arrays)), np.asarray(y), rows)
+        pairs = _segments(rows)
+        for row in rows:
+            row["labeller"] = json.loads(row["labeller"])
+        return LabelSet(pairs, np.asarray([row["label"] for row in rows]), rows)
+
+    def _rows(self, sql: str, args=()) -> list[dict]:
+        cur = self.db.execute(sql, args)
+        names = [d[0] for d in cur.description]
+        return [dict(zip(names, values)) for values in cur]
 
     # --- moving label sets between runs ------------------------------------------------------------
 
@@ -340,7 +344,7 @@ class LabelStore:
             return existing
         length, obs_dim = pairs.obs0.shape[1:]
         act_dim, when = pairs.act0.shape[2], _now()
-        physics = pairs.physics_arrays()
+        physics = pairs.physics
         shapes = json.dumps({"state": physics[0].shape[2], "scene": physics[2].shape[1]}) if physics else None
 
         def physics_blobs(i):
@@ -357,20 +361,15 @@ class LabelStore:
 
     def query_pairs(self, ids: list[int]) -> SegmentPairs:
         """The segments of published queries, in the order of ``ids`` (with physics states if recorded)."""
-        found = {}
-        for row in self.db.execute(f"SELECT * FROM queries WHERE id IN ({','.join('?' * len(ids))})",
-                                   [int(i) for i in ids]):
-            found[row[0]] = dict(zip([d[0] for d in self.db.execute("SELECT * FROM queries LIMIT 0").description], row))
+        found = {row["id"]: row for row in self._rows(f"SELECT * FROM queries WHERE id IN ({','.join('?' * len(ids))})",
+                                                      [int(i) for i in ids])}
         missing = [i for i in ids if i not in found]
         if missing:
             raise RatError(f"no published query {missing[0]} in '{self.path}'")
         rows = [found[i] for i in ids]
-        L, d, a = rows[0]["length"], rows[0]["obs_dim"], rows[0]["act_dim"]
-        shapes = {"obs0": (L, d), "act0": (L, a), "reward0": (L,), "obs1": (L, d), "act1": (L, a), "reward1": (L,)}
-        arrays = [np.stack([np.frombuffer(r[k], "<f4").reshape(shape) for r in rows]) for k, shape in shapes.items()]
-        pairs = SegmentPairs(*(x.astype(np.float32) for x in arrays))
+        pairs = _segments(rows)
         if rows[0]["physics"]:
-            sizes = json.loads(rows[0]["physics"])
+            sizes, L = json.loads(rows[0]["physics"]), rows[0]["length"]
             shapes = {"states0": (L, sizes["state"]), "states1": (L, sizes["state"]), "scene0": (sizes["scene"],),
                       "scene1": (sizes["scene"],)}
             pairs.physics = tuple(np.stack([np.frombuffer(r[k], "<f8").reshape(shape) for r in rows])
