@@ -38,11 +38,11 @@ def test_zoo_victims_are_looked_up_in_the_users_zoo_first_and_regenerated_there(
 
     monkeypatch.setenv("RAT_ZOO", str(tmp_path / "mine"))
     assert user_zoo_dir() == tmp_path / "mine"
-    assert zoo_path("drawer-open-v3") == ZOO_DIR / "drawer-open-v3"  # nothing of the user's yet: the shipped one
+    assert zoo_path("window-open-v3") == ZOO_DIR / "window-open-v3"  # nothing of the user's yet: the shipped one
     (tmp_path / "mine").mkdir()
     for suffix in (".json", ".safetensors"):
-        shutil.copy(ZOO_DIR / f"drawer-open-v3{suffix}", tmp_path / "mine" / f"drawer-open-v3{suffix}")
-    assert zoo_path("drawer-open-v3") == tmp_path / "mine" / "drawer-open-v3"
+        shutil.copy(ZOO_DIR / f"window-open-v3{suffix}", tmp_path / "mine" / f"window-open-v3{suffix}")
+    assert zoo_path("window-open-v3") == tmp_path / "mine" / "window-open-v3"
     monkeypatch.delenv("RAT_ZOO")
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
     assert user_zoo_dir() == tmp_path / "data" / "rat" / "zoo"
@@ -56,16 +56,29 @@ def test_zoo_names_pick_the_sac_victim_first_and_name_each_kind(tmp_path, monkey
     from rat.victims.zoo import zoo_path, zoo_victims
 
     monkeypatch.setenv("RAT_ZOO", str(tmp_path))
-    assert zoo_path("faucet-close-v3") == ZOO_DIR / "faucet-close-v3"  # only the behaviour clone so far
+    assert zoo_path("window-open-v3") == ZOO_DIR / "window-open-v3"  # only the behaviour clone so far
     for suffix in (".json", ".safetensors"):  # a SAC victim in the user's zoo (its weights: any victim's)
-        shutil.copy(ZOO_DIR / f"faucet-close-v3{suffix}", tmp_path / f"faucet-close-v3@sac{suffix}")
-    assert zoo_path("faucet-close-v3") == tmp_path / "faucet-close-v3@sac"
-    assert zoo_path("faucet-close-v3@sac") == tmp_path / "faucet-close-v3@sac"
-    assert zoo_path("faucet-close-v3@bc") == ZOO_DIR / "faucet-close-v3"
-    assert zoo_victims()["faucet-close-v3"] == ["sac", "bc"] and zoo_victims()["drawer-open-v3"] == ["bc"]
-    assert load_victim("zoo:faucet-close-v3@sac").name == "zoo:faucet-close-v3@sac"
-    with pytest.raises(RatError, match="no zoo victim 'faucet-close-v3@ppo'.*faucet-close-v3@sac"):
-        zoo_path("faucet-close-v3@ppo")
+        shutil.copy(ZOO_DIR / f"window-open-v3{suffix}", tmp_path / f"window-open-v3@sac{suffix}")
+    assert zoo_path("window-open-v3") == tmp_path / "window-open-v3@sac"
+    assert zoo_path("window-open-v3@sac") == tmp_path / "window-open-v3@sac"
+    assert zoo_path("window-open-v3@bc") == ZOO_DIR / "window-open-v3"
+    assert zoo_victims()["window-open-v3"] == ["sac", "bc"] and zoo_victims()["window-close-v3"] == ["bc"]
+    assert load_victim("zoo:window-open-v3@sac").name == "zoo:window-open-v3@sac"
+    with pytest.raises(RatError, match="no zoo victim 'window-open-v3@ppo'.*window-open-v3@sac"):
+        zoo_path("window-open-v3@ppo")
     assert main(["list", "tasks"]) == 0
-    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("faucet-close-v3"))
-    assert "zoo:faucet-close-v3@sac, zoo:faucet-close-v3@bc" in line
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("window-open-v3"))
+    assert "zoo:window-open-v3@sac, zoo:window-open-v3@bc" in line
+
+
+def test_the_shipped_sac_victim_is_sacs_own_actor_and_what_a_bare_zoo_name_means():
+    from rat.victims.zoo import zoo_path, zoo_victims
+
+    assert zoo_victims(ZOO_DIR)["drawer-open-v3"] == ["sac", "bc"]
+    assert zoo_path("drawer-open-v3", ZOO_DIR) == ZOO_DIR / "drawer-open-v3@sac"
+    meta = load_victim("zoo:drawer-open-v3@sac").meta
+    assert meta["method"] == "sac-demo" and meta["config"]["bc_updates"] == 0  # SAC's losses alone, no cloning
+    assert meta["config"]["sac"]["batch_size"] == 1024 and meta["config"]["sac"]["init_temperature"] == 0.1
+    assert meta["architecture"]["hidden"] == 256 and meta["architecture"]["layers"] == 3
+    timings = json.loads((ZOO_DIR / "timings.json").read_text())
+    assert timings["drawer-open-v3@sac"]["clean_success"] >= 0.95 and timings["drawer-open-v3@sac"]["episodes"] == 50
