@@ -56,7 +56,7 @@ def main() -> None:
     def env_steps():
         o, _ = env.reset(seed=1)
         for t in range(1000):
-            a = rat.victim_action(o) if t % 2 else learner.agent.act(o)
+            a = rat.victim_policy(rat.perturbed(o)) if t % 2 else learner.agent.act(o)
             o, _, term, trunc, info = env.step(a)
             target.reward(o, a, o, info)
             if term or trunc:

@@ -134,3 +134,39 @@ def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_t
     assert oracle.pebble.oracle and (oracle.select, oracle.imitate) == ("last", "current")
     labelled = RAT.configure(setup(), config)
     assert not labelled.pebble.oracle and (labelled.select, labelled.imitate) == ("reward", "best")
+
+
+def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_victim_had_there(tmp_path):
+    from dataclasses import replace
+
+    transformers = pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
+    from rat.victims.sequence import load_decision_transformer, save_decision_transformer
+
+    torch.manual_seed(0)
+    config = transformers.DecisionTransformerConfig(state_dim=4, act_dim=2, hidden_size=16, max_ep_len=64, n_layer=1,
+                                                    n_head=1, n_positions=64, action_tanh=True)
+    save_decision_transformer(tmp_path / "dt", transformers.DecisionTransformerModel(config), np.zeros(4), np.ones(4),
+                              target_return=-2.0, return_scale=10.0, context_length=4)
+    victim = load_decision_transformer(tmp_path / "dt")
+    before = {k: v.clone() for k, v in victim.state_dict().items()}
+    cfg = replace(small_config(700), weighting_every=100)
+    report = train_rat(cfg, AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False), tmp_path / "run")
+    assert report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
+    assert report.max_perturbation <= 0.1 + 1e-9
+    assert all(torch.equal(before[k], v) for k, v in victim.state_dict().items())  # the victim never changes
+
+    state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
+    buffer = state["learner"]["buffer"]
+    contexts = victim.unpack_context(torch.as_tensor(state["contexts"]))
+    assert len(state["contexts"]) == len(buffer["obs"]) == 700
+    steps = contexts.timesteps[:, -1].long().numpy()
+    assert steps[0] == 0 and set(np.diff(steps)) <= {1, -(HORIZON - 1)}  # each state knows its episode step
+    inside = np.flatnonzero(steps[1:] > 0) + 1  # states with a previous step in their episode
+    seen = contexts.states[inside, -1].numpy()  # the previous state, as the victim saw it
+    gap = np.abs(seen - buffer["obs"][inside - 1]).max(-1)
+    assert (gap <= 0.1 + 1e-6).all() and (gap > 0).all()  # perturbed, within ε, every one (π_θ's steps too)
+    np.testing.assert_allclose(contexts.actions[inside, -1].numpy(), buffer["action"][inside - 1], atol=1e-6)
+    fresh = np.flatnonzero(steps == 0)
+    assert (contexts.mask[fresh].sum(1) == 0).all() and (contexts.mask[inside, -1] == 1).all()
+    rtg = contexts.returns_to_go[:, -1].numpy()
+    assert np.allclose(rtg[fresh], -2.0) and (np.diff(rtg)[inside - 1] != 0).all()  # lowered by each step's reward

@@ -63,7 +63,7 @@ def test_a_checkpoint_in_the_hub_layout_loads_and_acts_as_the_hubs_recipe_over_a
     assert victim.meta["task"] == "HalfCheetah-v5" and victim.context_length == K
     rng = np.random.default_rng(0)
     context, states, actions, rtg, timesteps = victim.initial_context(), [], [], [3600.0], [0]
-    for t in range(9):  # longer than K: the context keeps the last K steps
+    for t in range(9):  # longer than K: the context keeps the last K - 1 steps, the current one makes K
         obs = rng.normal(size=OBS)
         with torch.no_grad():
             action = victim.act(torch.as_tensor(obs).unsqueeze(0), context)[0]
@@ -75,7 +75,7 @@ def test_a_checkpoint_in_the_hub_layout_loads_and_acts_as_the_hubs_recipe_over_a
         actions.append(action.numpy())
         rtg.append(rtg[-1] - reward)
         timesteps.append(t + 1)
-        assert context.length == min(t + 1, K) and int(context.timesteps[0, -1]) == t + 1
+        assert context.length == min(t + 1, K - 1) and int(context.timesteps[0, -1]) == t + 1
         torch.testing.assert_close(context.returns_to_go[0, -1], torch.tensor(rtg[-1]))
     fresh = victim.initial_context()  # reset: a new episode starts from the target return at step 0
     assert fresh.length == 0 and float(fresh.returns_to_go[0, -1]) == 3600.0 and int(fresh.timesteps[0, -1]) == 0
@@ -108,7 +108,7 @@ def test_the_perturbed_states_stay_in_the_context_within_the_ball(saved):
         with torch.no_grad():
             context = victim.update_context(context, seen, victim.act(seen, context), torch.tensor([0.0]))
         true_states.append(obs[0])
-    kept = torch.stack(true_states[-K:])
+    kept = torch.stack(true_states[-(K - 1):])
     gap = (context.states[0] - kept).abs().max(-1).values
     assert torch.all(gap <= 0.1 + 1e-6) and torch.all(gap > 0)  # what the victim saw, within ε of the truth
 
@@ -155,6 +155,27 @@ def test_a_batch_of_observations_shares_one_episodes_context(saved):
     torch.testing.assert_close(together, alone)
 
 
+def test_contexts_of_different_episodes_stack_into_one_batch_and_pack_into_rows(saved):
+    _, directory = saved
+    victim = load_decision_transformer(directory)
+    contexts, observations, rng = [], [], np.random.default_rng(3)
+    for steps in (0, 2, 7):  # a fresh episode, a young one, one past K
+        context = victim.initial_context()
+        for _ in range(steps):
+            obs = torch.as_tensor(rng.normal(size=(1, OBS)), dtype=torch.float32)
+            context = victim.update_context(context, obs, victim.act(obs, context).detach(), torch.tensor([rng.normal()]))
+        contexts.append(context)
+        observations.append(torch.as_tensor(rng.normal(size=(1, OBS)), dtype=torch.float32))
+    packed = torch.cat([victim.pack_context(c) for c in contexts])
+    assert packed.shape == (3, victim.context_size)
+    batch = victim.unpack_context(packed)
+    assert [victim.unpack_context(packed[i:i + 1]).length for i in range(3)] == [0, 2, K - 1]
+    with torch.no_grad():
+        together = victim.act(torch.cat(observations), batch)
+        alone = torch.cat([victim.act(o, c) for o, c in zip(observations, contexts)])
+    torch.testing.assert_close(together, alone)
+
+
 def test_an_evaluation_keeps_the_victims_context_and_an_attacked_one_stays_in_the_budget(tmp_path):
     import gymnasium as gym
 
@@ -182,10 +203,50 @@ def test_an_evaluation_keeps_the_victims_context_and_an_attacked_one_stays_in_th
         obs, reward, _, _, _ = env.step(action[0].numpy())
         context = victim.update_context(context, o, action, torch.tensor([reward]))
         total += reward
-    assert policy.context.length == K and int(policy.context.timesteps[0, -1]) == 12
+    assert policy.context.length == K - 1 and int(policy.context.timesteps[0, -1]) == 12
     torch.testing.assert_close(policy.context.states, context.states)
     assert np.isclose(policy.context.returns_to_go[0, -1].item(), 500.0 - total, atol=1e-3)
     assert result.episodes == 2
     attacked = evaluate_attack(victim, lambda o: np.ones_like(o), env, get_target("cheetah-backward"),
                                ThreatModel(0.1), 1, seed=6)
     assert attacked.within_budget and attacked.max_perturbation > 0.099
+
+
+def test_sa_rl_s_mdp_keeps_the_victims_context_and_history_blind_attacks_refuse_a_sequence_victim(saved):
+    import gymnasium as gym
+
+    from rat.attacks.rl import DirectorEnv, StateAdversaryEnv
+    from rat.attacks.simple import mad_attack
+    from rat.envs.targets import TargetBehaviour
+
+    _, directory = saved
+    victim = load_decision_transformer(directory)
+
+    class Walk(gym.Env):  # OBS-dimensional states, ACT-dimensional actions, reward 1 a step
+        observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS,), np.float64)
+        action_space = gym.spaces.Box(-1.0, 1.0, (ACT,), np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            self.x = np.random.default_rng(seed).normal(size=OBS)
+            return self.x.copy(), {}
+
+        def step(self, action):
+            self.x = self.x + 0.1 * np.resize(action, OBS)
+            return self.x.copy(), 1.0, False, False, {"success": False}
+
+    target = TargetBehaviour("any", "nothing", lambda o, a, n, i: 0.0, lambda i: False)
+    mdp, threat = StateAdversaryEnv(Walk(), victim, target.reward, target, ThreatModel(0.1)), ThreatModel(0.1)
+    obs, _ = mdp.reset(seed=0)
+    true_states = []
+    for t in range(6):
+        true_states.append(obs)
+        obs, *_, info = mdp.step(np.ones(OBS, np.float32))
+        context = mdp.policy.context
+        assert context.length == min(t + 1, K - 1) and float(context.returns_to_go[0, -1]) == 3600.0 - (t + 1)
+        np.testing.assert_allclose(context.states[0, -1].numpy(), true_states[-1] + info["perturbation"], atol=1e-5)
+    mdp.reset(seed=1)
+    assert mdp.policy.context.length == 0  # a new episode, a fresh history
+    for make in (lambda: DirectorEnv(Walk(), victim, target.reward, target, threat),
+                 lambda: mad_attack(victim, threat, seed=0)):
+        with pytest.raises(RatError, match="without the victim's history.*use rat, random or sa-rl"):
+            make()

@@ -45,8 +45,20 @@ class ReplayBuffer:
 
     def sample(self, batch_size: int, rng: np.random.Generator, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
         """A uniform batch of stored transitions as tensors, drawn with ``rng``."""
-        idx = rng.integers(0, self.size, size=batch_size)
+        return self.take(self.sample_indices(batch_size, rng), device)
+
+    def sample_indices(self, batch_size: int, rng: np.random.Generator) -> np.ndarray:
+        """Where a uniform batch lies (for data kept beside the buffer, row for row)."""
+        return rng.integers(0, self.size, size=batch_size)
+
+    def take(self, idx: np.ndarray, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
+        """The transitions at ``idx`` as tensors."""
         return {name: torch.as_tensor(getattr(self, name)[idx], device=device) for name in FIELDS}
+
+    @property
+    def last_index(self) -> int:
+        """Where the latest transition was stored."""
+        return (self.cursor - 1) % self.capacity
 
     def relabel(self, reward_fn: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], chunk: int = 8192) -> None:
         """Rewrite every stored reward as ``reward_fn(obs, action, next_obs)`` (batched numpy)."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -77,7 +78,8 @@ class Imitation:
     critic Q_φ and temperature μ, and the budget.
 
     Every method takes the adversary and, optionally, ``params`` that override its parameters
-    (the virtual step of the hypergradient differentiates through them).
+    (the virtual step of the hypergradient differentiates through them), and a batch of states:
+    observations and, for a sequence victim, the context it had at each (else None).
 
     Attributes:
         victim: the frozen victim; gradients flow through it to the observation only.
@@ -96,32 +98,33 @@ class Imitation:
     kl_form: str = "exact"
 
     def perturbed_action(self, adversary: Adversary, params: dict | None, obs: torch.Tensor,
-                         noise: torch.Tensor | None) -> torch.Tensor:
+                         noise: torch.Tensor | None, context: Any = None) -> torch.Tensor:
         """μ_ν(s + ε·P(Δ_α(s))), differentiable in the adversary's parameters."""
         delta = adversary(obs, noise) if params is None else functional_call(adversary, params, (obs, noise))
-        return self.victim.act(self.threat.perturb(obs, delta))
+        attacked = self.threat.perturb(obs, delta)
+        return self.victim.act(attacked) if context is None else self.victim.act(attacked, context)
 
     @torch.no_grad()
-    def gap(self, adversary: Adversary, obs: torch.Tensor) -> float:
+    def gap(self, adversary: Adversary, obs: torch.Tensor, context: Any = None) -> float:
         """The imitation gap: mean ‖μ_ν(s̃) − tanh μ_θ(s)‖₂ over ``obs`` with the adversary's deterministic Δ."""
         target_mean, _ = intention_gaussian(self.intention, obs)
-        return (self.perturbed_action(adversary, None, obs, None) - target_mean).norm(dim=-1).mean().item()
+        return (self.perturbed_action(adversary, None, obs, None, context) - target_mean).norm(dim=-1).mean().item()
 
-    def kl(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None
-           ) -> torch.Tensor:
+    def kl(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None,
+           context: Any = None) -> torch.Tensor:
         """KL(π_{ν∘α}(·|s) ‖ π_θ(·|s)) for each state of the batch, ``[B]``."""
         target_mean, target_log_std = intention_gaussian(self.intention, obs)
-        action = self.perturbed_action(adversary, params, obs, noise)
+        action = self.perturbed_action(adversary, params, obs, noise, context)
         return gaussian_kl(action, self.victim_std, target_mean, target_log_std, self.kl_form)
 
-    def outer(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None
-              ) -> torch.Tensor:
+    def outer(self, adversary: Adversary, params: dict | None, obs: torch.Tensor, noise: torch.Tensor | None,
+              context: Any = None) -> torch.Tensor:
         """J(α) = mean_s[μ log π_{ν∘α}(a|s) − min Q_φ(s, a)], a = μ_ν(s̃).
 
         At a = the perturbed policy's mean, log π is the constant −(|A|/2) log(2π σ_v²); it is kept
         so the value is the paper's J, though only −Q carries a gradient.
         """
-        action = self.perturbed_action(adversary, params, obs, noise)
+        action = self.perturbed_action(adversary, params, obs, noise, context)
         log_prob = -0.5 * action.shape[-1] * math.log(2 * math.pi * self.victim_std**2)
         q1, q2 = self.critic(obs, action)
         return (self.temperature.detach() * log_prob - torch.min(q1, q2)).mean()
@@ -134,7 +137,7 @@ def inner_loss(weights: torch.Tensor, kl: torch.Tensor) -> torch.Tensor:
 
 def hypergradient(objective: Imitation, adversary: Adversary, weighting: WeightingNetwork, obs_inner: torch.Tensor,
                   noise_inner: torch.Tensor, obs_outer: torch.Tensor, noise_outer: torch.Tensor, inner_lr: float,
-                  form: str = "exact") -> list[torch.Tensor]:
+                  form: str = "exact", context_inner: Any = None, context_outer: Any = None) -> list[torch.Tensor]:
     """∇_ω J(α'(ω)), α'(ω) = α − η ∇_α L(α; ω), one gradient per weighting-network parameter.
 
     ``form="exact"`` differentiates through the virtual step (per state: the paper's
@@ -143,12 +146,12 @@ def hypergradient(objective: Imitation, adversary: Adversary, weighting: Weighti
     """
     a_params = {k: v.detach().requires_grad_(True) for k, v in adversary.named_parameters()}
     w_params = dict(weighting.named_parameters())
-    kl = objective.kl(adversary, a_params, obs_inner, noise_inner)
+    kl = objective.kl(adversary, a_params, obs_inner, noise_inner, context_inner)
     if form == "exact":
         weights = functional_call(weighting, w_params, (obs_inner,))
         grads = torch.autograd.grad(inner_loss(weights, kl), list(a_params.values()), create_graph=True)
         virtual = {k: p - inner_lr * g for (k, p), g in zip(a_params.items(), grads)}
-        j = objective.outer(adversary, virtual, obs_outer, noise_outer)
+        j = objective.outer(adversary, virtual, obs_outer, noise_outer, context_outer)
         return list(torch.autograd.grad(j, list(w_params.values()), allow_unused=True))
     if form != "batch-mean":
         raise ValueError(f"unknown hypergradient form '{form}'")
@@ -156,7 +159,7 @@ def hypergradient(objective: Imitation, adversary: Adversary, weighting: Weighti
         weights = weighting(obs_inner)
     grads = torch.autograd.grad(inner_loss(weights, kl), list(a_params.values()), retain_graph=True)
     virtual = {k: (p - inner_lr * g).detach().requires_grad_(True) for (k, p), g in zip(a_params.items(), grads)}
-    j = objective.outer(adversary, virtual, obs_outer, noise_outer)
+    j = objective.outer(adversary, virtual, obs_outer, noise_outer, context_outer)
     g_outer = torch.autograd.grad(j, list(virtual.values()))
     g_kl = torch.autograd.grad(kl.mean(), list(a_params.values()))
     f_bar = -inner_lr * sum((a * b).sum() for a, b in zip(g_outer, g_kl))

@@ -14,12 +14,16 @@ Ablations (the paper's table 4), by ``RATConfig.ablation``:
   i.e. maximises the intention critic's value Q_φ(s, μ_ν(s̃)) of the perturbed victim's action,
   data comes from the perturbed victim alone, and the weighting network is off (its objective is
   defined through the imitation step). π_θ still exists only as the critic's bootstrap policy.
+
+Sequence victims (Decision Transformers): the victim's context follows each episode as it
+happened — the observation as perturbed, the action taken (π_θ's, after the combined behaviour
+policy's switch), the environment's reward — and every stored state keeps the context the victim
+had there, packed beside the replay buffer, so the adversary trains on states *in their context*.
 """
 
 from __future__ import annotations
 
 import copy
-
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -32,7 +36,7 @@ from rat import seeds
 from rat.attacks.base import AttackSetup, register_attack
 from rat.attacks.evaluation import AttackEval, evaluate_attack
 from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss
-from rat.attacks.threat import Perturbation, ThreatModel
+from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
 from rat.device import resolve_device
 from rat.envs.physics import physics_of
@@ -44,7 +48,7 @@ from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.store import LabelStore
 from rat.reports import AttackReport
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_jsonable
-from rat.victims.base import Victim, check_compatible
+from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
 
@@ -135,19 +139,19 @@ def adversary_function(adversary: Adversary) -> Perturbation:
 
 
 def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, weighting: WeightingNetwork | None,
-                     objective: Imitation, obs: torch.Tensor, ablation: str = "none") -> dict[str, float]:
+                     objective: Imitation, obs: torch.Tensor, ablation: str = "none", context=None) -> dict[str, float]:
     """One inner-level step: only the adversary's parameters receive a gradient and change.
 
     Minimises the weighted KL to the intention policy (weights 1 without a weighting network),
-    or, for the ``no-intention`` ablation, the outer loss itself.
+    or, for the ``no-intention`` ablation, the outer loss itself. ``context``: a sequence victim's, per state.
     """
     noise = torch.randn_like(obs)
     if ablation == "no-intention":
-        loss = objective.outer(adversary, None, obs, noise)
+        loss = objective.outer(adversary, None, obs, noise, context)
     else:
         with torch.no_grad():
             weights = weighting(obs) if weighting is not None else torch.ones(len(obs), device=obs.device)
-        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise))
+        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise, context))
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=list(adversary.parameters()))  # nothing else may accumulate a gradient
     optimizer.step()
@@ -156,10 +160,10 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
 
 def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimizer, adversary: Adversary,
                      objective: Imitation, obs_inner: torch.Tensor, obs_outer: torch.Tensor, inner_lr: float,
-                     form: str = "exact") -> dict[str, float]:
+                     form: str = "exact", context_inner=None, context_outer=None) -> dict[str, float]:
     """One outer-level step: the hypergradient moves the weighting network, and nothing else."""
     grads = hypergradient(objective, adversary, weighting, obs_inner, torch.randn_like(obs_inner), obs_outer,
-                          torch.randn_like(obs_outer), inner_lr, form)
+                          torch.randn_like(obs_outer), inner_lr, form, context_inner, context_outer)
     optimizer.zero_grad(set_to_none=True)
     for p, g in zip(weighting.parameters(), grads):
         p.grad = None if g is None else g.detach()
@@ -210,6 +214,10 @@ class RATTrainer:
         self.best: dict | None = None  # imitate="best": frozen copies of π_θ's actor and critic, its temperature
         self.finished = False
         self.obs: np.ndarray | None = None  # None between episodes
+        self.victim_policy = VictimPolicy(self.victim)  # keeps a sequence victim's context over the episode
+        self.sequence = is_sequence(self.victim)
+        capacity = self.learner.buffer.capacity  # a sequence victim's context at each stored state, row for row:
+        self.contexts = np.zeros((capacity, self.victim.context_size), np.float32) if self.sequence else None
 
     @property
     def step(self) -> int:
@@ -246,30 +254,35 @@ class RATTrainer:
 
     # --- one environment step (the paper's Algorithm 1) -------------------------------------------
 
-    def victim_action(self, obs: np.ndarray) -> np.ndarray:
-        """The perturbed victim's action; the adversary explores (samples Δ) while collecting."""
-        with torch.no_grad():
-            s = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
-            delta = self.adversary(s, torch.randn_like(s))
-            return self.victim.act(self.config.threat.perturb(s, delta)).squeeze(0).cpu().numpy()
+    @torch.no_grad()
+    def perturbed(self, obs: np.ndarray) -> np.ndarray:
+        """s̃ for the victim; the adversary explores (samples Δ) while collecting."""
+        s = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+        return self.config.threat.perturb(s, self.adversary(s, torch.randn_like(s))).squeeze(0).cpu().numpy()
 
     def advance(self) -> dict[str, float] | None:
         cfg, learner = self.config, self.learner
         if self.obs is None:  # a new episode
             self.obs, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
             self.behaviour.start_episode(self.rng)
+            self.victim_policy.reset()
             self.t, self.succeeded, self.metrics = 0, False, {}
             self.success_test = self.target.episode_success()
-        obs = self.obs
-        action = self.victim_action(obs) if self.behaviour.victim_acts(self.t) else learner.act(obs)
+        obs, victim_turn = self.obs, self.behaviour.victim_acts(self.t)
+        context = self.victim.pack_context(self.victim_policy.context).cpu().numpy() if self.sequence else None
+        seen = self.perturbed(obs) if victim_turn or self.sequence else None  # what the victim sees, acting or not
+        action = self.victim_policy(seen) if victim_turn else learner.act(obs)
         physics = physics_of(self.env) if learner.wants_physics else None  # to film the step for a person
-        next_obs, _, terminated, truncated, info = self.env.step(action)
+        next_obs, reward, terminated, truncated, info = self.env.step(action)
         r_target = self.target.reward(obs, action, next_obs, info)
         self.metrics.update(learner.observe(obs, action, next_obs, r_target, terminated, truncated, physics))  # labels, r̂, π_θ
+        if self.sequence:
+            self.contexts[learner.buffer.last_index] = context
+            self.victim_policy.observe(reward, *((None, None) if victim_turn else (seen, action)))
         if learner.reward_ready and learner.step % cfg.adversary_every == 0:
             for _ in range(cfg.adversary_updates):
                 self.metrics.update(self.adversary_step())  # inner level
-            self.metrics["imitation_gap"] = self.objective().gap(self.adversary, self.last_batch)  # after the phase
+            self.metrics["imitation_gap"] = self.objective().gap(self.adversary, *self.last_batch)  # after the phase
         if self.use_weighting and learner.reward_ready and learner.step % cfg.weighting_every == 0:
             self.metrics.update(self.weighting_step())  # outer level
         self.succeeded |= self.success_test(info)
@@ -279,20 +292,27 @@ class RATTrainer:
             return {"behaviour_success": float(self.succeeded), "switch_step": self.behaviour.switch, **self.metrics}
         return None
 
-    def sample_obs(self) -> torch.Tensor:
-        return self.learner.buffer.sample(self.config.adversary_batch, self.rng, self.device)["obs"]
+    def sample_states(self) -> tuple[torch.Tensor, object]:
+        """A batch of stored states: observations, and a sequence victim's context at each (else None)."""
+        buffer = self.learner.buffer
+        idx = buffer.sample_indices(self.config.adversary_batch, self.rng)
+        obs = buffer.take(idx, self.device)["obs"]
+        if not self.sequence:
+            return obs, None
+        return obs, self.victim.unpack_context(torch.as_tensor(self.contexts[idx], device=self.device))
 
     def adversary_step(self) -> dict[str, float]:
-        obs = self.last_batch = self.sample_obs()
+        obs, context = self.last_batch = self.sample_states()
         self.counters["adversary_updates"] += 1
         return adversary_update(self.adversary, self.adversary_opt, self.weighting if self.use_weighting else None,
-                                self.objective(), obs, self.config.ablation)
+                                self.objective(), obs, self.config.ablation, context)
 
     def weighting_step(self) -> dict[str, float]:
-        obs_inner, obs_outer = self.sample_obs(), self.sample_obs()
+        (obs_inner, context_inner), (obs_outer, context_outer) = self.sample_states(), self.sample_states()
         self.counters["weighting_updates"] += 1
         return weighting_update(self.weighting, self.weighting_opt, self.adversary, self.objective(), obs_inner,
-                                obs_outer, self.config.adversary_lr, self.config.hypergradient)
+                                obs_outer, self.config.adversary_lr, self.config.hypergradient, context_inner,
+                                context_outer)
 
     # --- evaluation and state ----------------------------------------------------------------------
 
@@ -314,7 +334,8 @@ class RATTrainer:
         return {"learner": self.learner.state_dict(), "adversary": self.adversary.state_dict(),
                 "weighting": self.weighting.state_dict(), "adversary_opt": self.adversary_opt.state_dict(),
                 "weighting_opt": self.weighting_opt.state_dict(), "rng": rng_state(self.rng),
-                "counters": dict(self.counters)} | ({} if self.best is None else {"best": {
+                "counters": dict(self.counters)} | ({} if self.contexts is None else {
+                    "contexts": self.contexts[:len(self.learner.buffer)]}) | ({} if self.best is None else {"best": {
                     "actor": self.best["actor"].state_dict(), "critic": self.best["critic"].state_dict(),
                     "alpha": self.best["alpha"], "step": torch.tensor(self.best["step"])}})
 
@@ -326,6 +347,8 @@ class RATTrainer:
         self.weighting_opt.load_state_dict(state["weighting_opt"])
         restore_rng_state(self.rng, state["rng"])
         self.counters.update({k: int(state["counters"][k]) for k in self.counters})
+        if self.contexts is not None:
+            self.contexts[:len(state["contexts"])] = state["contexts"]
         if "best" in state:
             agent, b = self.learner.agent, state["best"]
             self.best = {"actor": copy.deepcopy(agent.actor).requires_grad_(False),
@@ -382,33 +405,33 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
 @torch.no_grad()
 def policy_learned_return(policy: Callable[[np.ndarray], np.ndarray], env: gym.Env, ensemble, episodes: int,
                           seed: int) -> float:
-    """Mean return under r̂ of ``policy``'s episodes (``obs -> action``; episode ``i`` reset with ``seed + i``)."""
+    """Mean return under r̂ of ``policy``'s episodes (``obs -> action``; episode ``i`` reset with ``seed + i``).
+
+    r̂ scores the true state (``info["true_obs"]`` under an attack); a policy with ``reset()`` and
+    ``observe(reward)`` (a :class:`~rat.victims.base.VictimPolicy`) is told where episodes start and what happened.
+    """
     returns = []
     for episode in range(episodes):
-        obs, _ = env.reset(seed=seed + episode)
+        obs, info = env.reset(seed=seed + episode)
+        if hasattr(policy, "reset"):
+            policy.reset()
         total, done = 0.0, False
         while not done:
             action = policy(obs)
-            total += float(ensemble.r_hat(obs.astype(np.float32), action))
-            obs, _, terminated, truncated, _ = env.step(action)
+            total += float(ensemble.r_hat(np.asarray(info.get("true_obs", obs), np.float32), action))
+            obs, reward, terminated, truncated, info = env.step(action)
+            if hasattr(policy, "observe"):
+                policy.observe(reward)
             done = terminated or truncated
         returns.append(total)
     return float(np.mean(returns))
 
 
-@torch.no_grad()
 def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, threat: ThreatModel, episodes: int,
                    seed: int) -> float:
     """Mean return under r̂ of the attacked victim's episodes: how well the attack does, by the attacker's model."""
-    delta = adversary_function(adversary)
-    device = next(adversary.parameters()).device
-
-    def attacked(obs: np.ndarray) -> np.ndarray:
-        s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
-        d = torch.as_tensor(delta(obs), dtype=torch.float32, device=device).unsqueeze(0)
-        return victim.act(threat.perturb(s, d)).squeeze(0).cpu().numpy()
-
-    return policy_learned_return(attacked, env, ensemble, episodes, seed)
+    attacked = AttackedObservation(env, adversary_function(adversary), threat)
+    return policy_learned_return(VictimPolicy(victim), attacked, ensemble, episodes, seed)
 
 
 def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Victim, ensemble, env: gym.Env,

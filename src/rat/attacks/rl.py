@@ -37,20 +37,24 @@ from rat.preferences.offline import learn_reward, reward_source
 from rat.preferences.reward_model import RewardModelConfig
 from rat.reports import AttackReport
 from rat.runs import Run, to_jsonable
-from rat.victims.base import Victim, check_compatible
+from rat.victims.base import Victim, VictimPolicy, check_compatible, require_memoryless
 
 
 # --- the adversary MDPs ---------------------------------------------------------------------------------
 
 
 class _AdversaryMDP(gym.Env):
-    """The environment seen by an RL adversary: observation = true state, the victim acts on s̃."""
+    """The environment seen by an RL adversary: observation = true state, the victim acts on s̃.
+
+    A sequence victim keeps its context over the episode (the states as perturbed), as in an evaluation.
+    """
 
     metadata = {"render_modes": []}
 
     def __init__(self, env: gym.Env, victim: Victim, reward: RewardFn, target: TargetBehaviour, threat: ThreatModel):
         check_compatible(victim, env)
         self.env, self.victim, self.reward, self.target, self.threat = env, victim, reward, target, threat
+        self.policy = VictimPolicy(victim)
         self.observation_space = env.observation_space
         self._obs: np.ndarray | None = None
 
@@ -62,14 +66,15 @@ class _AdversaryMDP(gym.Env):
         super().reset(seed=seed)
         self._obs, info = self.env.reset(seed=seed, options=options)
         self._success = self.target.episode_success()
+        self.policy.reset()
         return self._obs, info
 
     def step(self, action: np.ndarray):
         s = torch.as_tensor(self._obs, dtype=torch.float32).unsqueeze(0)
         delta = self.perturbation(s, np.asarray(action, np.float32))
-        with torch.no_grad():
-            victim_action = self.victim.act(self.threat.perturb(s, delta)).squeeze(0).numpy()
-        next_obs, _, terminated, truncated, info = self.env.step(victim_action)
+        victim_action = self.policy(self.threat.perturb(s, delta).squeeze(0).detach().numpy())
+        next_obs, env_reward, terminated, truncated, info = self.env.step(victim_action)
+        self.policy.observe(env_reward)
         reward = self.reward(self._obs, victim_action, next_obs, info)
         info = dict(info, victim_action=victim_action, target_success=self._success(info),
                     perturbation=(self.threat.epsilon * delta.squeeze(0)).numpy())
@@ -101,6 +106,7 @@ class DirectorEnv(_AdversaryMDP):
 
     def __init__(self, *args, lam: float = 1.0, actor_steps: int = 1, **kwargs):
         super().__init__(*args, **kwargs)
+        require_memoryless(self.victim, "pa-ad")
         self.lam, self.actor_steps = lam, actor_steps
         self.action_space = gym.spaces.Box(-1.0, 1.0, self.env.action_space.shape, np.float32)
 
@@ -191,6 +197,7 @@ def sarl_perturbation(policy) -> Perturbation:
 
 
 def paad_perturbation(policy, victim: Victim, threat: ThreatModel, lam: float, steps: int, seed: int) -> Perturbation:
+    require_memoryless(victim, "pa-ad")
     rng, direct = np.random.default_rng(seed), ppo_direction(policy)
 
     def delta(obs: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ from rat.attacks.runs import baseline_run
 from rat.attacks.threat import Perturbation, ThreatModel
 from rat.errors import RatError
 from rat.reports import AttackReport
-from rat.victims.base import Victim
+from rat.victims.base import Victim, require_memoryless
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,7 @@ def random_perturbation(dim: int, threat: ThreatModel, seed: int) -> Perturbatio
 
 
 def mad_attack(victim: Victim, threat: ThreatModel, seed: int, steps: int = 10) -> Perturbation:
+    require_memoryless(victim, "mad")
     rng = np.random.default_rng(seed)
 
     def delta(obs: np.ndarray) -> np.ndarray:

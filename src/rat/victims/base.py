@@ -49,6 +49,34 @@ class Victim(Protocol):
         """The context after the victim saw ``obs``, emitted ``action`` and received ``reward``."""
 
 
+class SequenceVictim(Victim, Protocol):
+    """A victim that reads its history, and whose contexts pack into rows of floats.
+
+    Training an attack draws states from many episodes and steps; each needs the context the
+    victim had there, so the attack stores one packed row per state and unpacks a batch of them.
+    """
+
+    context_size: int  #: floats in one packed context
+
+    def pack_context(self, context: Any) -> torch.Tensor:
+        """``[B, context_size]``: one row per episode of ``context``."""
+
+    def unpack_context(self, packed: torch.Tensor) -> Any:
+        """The batch of contexts whose rows :meth:`pack_context` made."""
+
+
+def is_sequence(victim: Victim) -> bool:
+    """Whether ``victim`` reads its history (its episodes start from a context that is not None)."""
+    return victim.initial_context(1) is not None
+
+
+def require_memoryless(victim: Victim, method: str) -> None:
+    """Raise a one-line error if ``method``, which perturbs without the victim's history, meets a sequence victim."""
+    if is_sequence(victim):
+        raise RatError(f"{method} computes perturbations without the victim's history, so it cannot attack the "
+                       f"sequence victim '{victim.name}'; use rat, random or sa-rl")
+
+
 def freeze(module: nn.Module) -> nn.Module:
     """Put ``module`` in eval mode and stop its parameters from ever requiring gradients."""
     module.eval()
@@ -105,6 +133,8 @@ class VictimPolicy:
     :meth:`observe` records the step just taken (the observation as the victim saw it, its
     action, and the environment's reward). Memoryless victims need neither.
     """
+    # The context always records what happened: when someone else acted for the victim (the combined
+    # behaviour policy hands control to π_θ), ``observe(reward, seen, taken)`` records that step.
 
     def __init__(self, victim: Victim):
         self.victim = victim
@@ -122,10 +152,18 @@ class VictimPolicy:
         self._last = (o, action)
         return action.squeeze(0).cpu().numpy()
 
-    def observe(self, reward: float) -> None:
-        if self.context is not None and self._last is not None:
+    def observe(self, reward: float, seen: np.ndarray | None = None, taken: np.ndarray | None = None) -> None:
+        """Record the step just taken: by default what the victim saw and did at its last call; ``seen`` and
+        ``taken`` when the action was someone else's, so the history stays the episode's own."""
+        if self.context is None:
+            return
+        if seen is not None:
+            as_row = lambda x: torch.as_tensor(x, dtype=torch.float32, device=self.device).reshape(1, -1)  # noqa: E731
+            self._last = (as_row(seen), as_row(taken))
+        if self._last is not None:
             obs, action = self._last
             self.context = self.victim.update_context(self.context, obs, action, torch.tensor([float(reward)]))
+            self._last = None
 
 
 def numpy_policy(victim: Victim) -> VictimPolicy:

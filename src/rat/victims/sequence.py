@@ -26,7 +26,7 @@ Checkpoints load as users have them, in the Hugging Face hub's layout, from a lo
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,23 +43,37 @@ DT_META = "rat_dt.json"
 
 @dataclass(frozen=True)
 class DTContext:
-    """The recent history of a batch of episodes (at most K steps), as the victim saw it.
+    """The last K − 1 steps of a batch of episodes as the victim saw them, left-padded to a fixed shape.
+
+    The fixed shape lets the contexts of different episodes and steps stack into one batch (an
+    attack trains on states drawn from many episodes) and pack into one row of floats
+    (:meth:`DecisionTransformerVictim.pack_context`) for a replay buffer.
 
     Attributes:
-        states: ``[B, t, obs_dim]`` raw (unnormalised) states seen.
-        actions: ``[B, t, act_dim]`` actions taken.
-        returns_to_go: ``[B, t + 1]`` returns-to-go (unscaled), the last one for the coming step.
-        timesteps: ``[B, t + 1]`` episode steps, the last one for the coming step.
+        states: ``[B, K-1, obs_dim]`` raw (unnormalised) states seen, oldest first.
+        actions: ``[B, K-1, act_dim]`` actions taken.
+        returns_to_go: ``[B, K]`` returns-to-go (unscaled); the last one is for the coming step.
+        timesteps: ``[B, K]`` episode steps; the last one is for the coming step.
+        mask: ``[B, K-1]`` 1 where a past step exists (the first steps of an episode have fewer).
     """
 
     states: torch.Tensor
     actions: torch.Tensor
     returns_to_go: torch.Tensor
     timesteps: torch.Tensor
+    mask: torch.Tensor
 
     @property
     def length(self) -> int:
-        return self.states.shape[1]
+        """Past steps held (of the first episode of the batch)."""
+        return int(self.mask[0].sum().item())
+
+    def repeat(self, n: int) -> "DTContext":
+        """One episode's context for a batch of ``n`` observations."""
+        return DTContext(*(x.expand(n, *x.shape[1:]) for x in self.fields()))
+
+    def fields(self) -> tuple[torch.Tensor, ...]:
+        return self.states, self.actions, self.returns_to_go, self.timesteps, self.mask
 
 
 class DecisionTransformerVictim(nn.Module):
@@ -71,13 +85,17 @@ class DecisionTransformerVictim(nn.Module):
         state_mean, state_std: the statistics its states were normalised with in training.
         target_return: the return it is conditioned on at the start of an episode.
         return_scale: returns-to-go are divided by it before they enter the model (1000 in the paper).
-        context_length: K, the steps it reads (the paper's 20).
+        context_length: K, the steps it reads (the paper's 20): K − 1 past ones and the current one.
     """
 
     def __init__(self, model: nn.Module, observation_space: gym.spaces.Box, action_space: gym.spaces.Box,
                  state_mean: np.ndarray, state_std: np.ndarray, target_return: float, return_scale: float = 1000.0,
                  context_length: int = 20, name: str = "decision-transformer", meta: dict[str, Any] | None = None):
         super().__init__()
+        if hasattr(model, "set_attn_implementation"):
+            # The weighting network's hypergradient differentiates through the victim twice; the fused CPU
+            # attention kernels have no second derivative, the plain one has (and gives the same actions).
+            model.set_attn_implementation("eager")
         self.model = freeze(model)
         self.observation_space, self.action_space, self.name = observation_space, action_space, name
         self.meta = dict(meta or {})
@@ -87,41 +105,40 @@ class DecisionTransformerVictim(nn.Module):
         self.register_buffer("state_std", torch.as_tensor(np.asarray(state_std), dtype=torch.float32))
         self.register_buffer("low", torch.as_tensor(action_space.low, dtype=torch.float32))
         self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
+        obs_dim, act_dim, past = observation_space.shape[0], action_space.shape[0], context_length - 1
+        self._widths = (past * obs_dim, past * act_dim, context_length, context_length, past)
 
     def train(self, mode: bool = True) -> "DecisionTransformerVictim":
         return super().train(False)  # dropout would make the victim stochastic
 
     def initial_context(self, batch_size: int = 1) -> DTContext:
-        obs_dim, act_dim = self.observation_space.shape[0], self.action_space.shape[0]
-        dev = self.state_mean.device
-        return DTContext(torch.zeros(batch_size, 0, obs_dim, device=dev), torch.zeros(batch_size, 0, act_dim, device=dev),
-                         torch.full((batch_size, 1), self.target_return, device=dev),
-                         torch.zeros(batch_size, 1, dtype=torch.long, device=dev))
+        obs_dim, act_dim, past = self.observation_space.shape[0], self.action_space.shape[0], self.context_length - 1
+        zeros = lambda *shape: torch.zeros(batch_size, *shape, device=self.state_mean.device)  # noqa: E731
+        return DTContext(zeros(past, obs_dim), zeros(past, act_dim),
+                         torch.full((batch_size, self.context_length), self.target_return, device=self.state_mean.device),
+                         zeros(self.context_length), zeros(past))
 
     def act(self, obs: torch.Tensor, context: DTContext | None = None) -> torch.Tensor:
-        """The action for the current observations ``[B, obs_dim]`` after ``context`` (a fresh episode if None)."""
+        """The action for the current observations ``[B, obs_dim]`` after ``context`` (a fresh episode if None).
+
+        ``context`` holds one episode (shared by the whole batch) or one per observation.
+        """
         obs = obs.float()
+        batch = obs.shape[0]
         if context is None:
-            context = self.initial_context(obs.shape[0])
-        if context.states.shape[0] != obs.shape[0]:  # one episode's context, a batch of observations
-            context = _repeat(context, obs.shape[0])
-        k = self.context_length
-        states = torch.cat([context.states, obs.unsqueeze(1)], 1)[:, -k:]
-        placeholder = torch.zeros(obs.shape[0], 1, self.action_space.shape[0], device=obs.device)  # not yet taken
-        actions = torch.cat([context.actions, placeholder], 1)[:, -k:]
-        rtg = context.returns_to_go[:, -k:]
-        timesteps = context.timesteps[:, -k:].clamp(max=self.max_timestep)
-        n, pad = states.shape[1], k - states.shape[1]
-        states = (states - self.state_mean) / self.state_std
-
-        def left_pad(x: torch.Tensor, value: float = 0.0) -> torch.Tensor:
-            shape = (x.shape[0], pad, *x.shape[2:])
-            return torch.cat([torch.full(shape, value, dtype=x.dtype, device=x.device), x], 1)
-
-        mask = torch.cat([torch.zeros(obs.shape[0], pad, device=obs.device), torch.ones(obs.shape[0], n, device=obs.device)], 1)
+            context = self.initial_context(batch)
+        if context.states.shape[0] != batch:
+            context = context.repeat(batch)
+        mask = torch.cat([context.mask, torch.ones(batch, 1, device=obs.device)], 1)  # [B, K]; padding is 0
+        states = (torch.cat([context.states, obs.unsqueeze(1)], 1) - self.state_mean) / self.state_std
+        placeholder = torch.zeros(batch, 1, self.action_space.shape[0], device=obs.device)  # not yet taken
+        actions = torch.cat([context.actions, placeholder], 1)
+        rtg = context.returns_to_go / self.return_scale
+        timesteps = context.timesteps.clamp(max=self.max_timestep)
         _, action_preds, _ = self.model(
-            states=left_pad(states), actions=left_pad(actions), rewards=torch.zeros(obs.shape[0], k, 1, device=obs.device),
-            returns_to_go=left_pad((rtg / self.return_scale).unsqueeze(-1)), timesteps=left_pad(timesteps).long(),
+            states=states * mask.unsqueeze(-1), actions=actions * mask.unsqueeze(-1),
+            rewards=torch.zeros(batch, self.context_length, 1, device=obs.device),
+            returns_to_go=(rtg * mask).unsqueeze(-1), timesteps=(timesteps * mask).long(),
             attention_mask=mask.long(), return_dict=False)
         action = action_preds[:, -1]
         return torch.max(torch.min(action, self.high), self.low)
@@ -133,16 +150,28 @@ class DecisionTransformerVictim(nn.Module):
         """The context after a step: the state as seen, the action taken, the return-to-go lowered by the true reward."""
         obs, action = obs.detach().float(), action.detach().float()
         reward = torch.as_tensor(reward, dtype=torch.float32, device=obs.device).reshape(-1)
-        keep = self.context_length  # K steps of history are all the model ever reads
-        return DTContext(torch.cat([context.states, obs.unsqueeze(1)], 1)[:, -keep:],
-                         torch.cat([context.actions, action.unsqueeze(1)], 1)[:, -keep:],
-                         torch.cat([context.returns_to_go, (context.returns_to_go[:, -1] - reward).unsqueeze(1)], 1)[:, -keep - 1:],
-                         torch.cat([context.timesteps, context.timesteps[:, -1:] + 1], 1)[:, -keep - 1:])
+        shift = lambda old, new: torch.cat([old[:, 1:], new.unsqueeze(1).to(old.dtype)], 1)  # noqa: E731
+        return DTContext(shift(context.states, obs), shift(context.actions, action),
+                         shift(context.returns_to_go, context.returns_to_go[:, -1] - reward),
+                         shift(context.timesteps, context.timesteps[:, -1] + 1),
+                         shift(context.mask, torch.ones(obs.shape[0], device=obs.device)))
 
+    @property
+    def context_size(self) -> int:
+        """Floats in one packed context (see :meth:`pack_context`)."""
+        return sum(self._widths)
 
-def _repeat(context: DTContext, n: int) -> DTContext:
-    return replace(context, **{k: getattr(context, k).expand(n, *getattr(context, k).shape[1:])
-                               for k in ("states", "actions", "returns_to_go", "timesteps")})
+    def pack_context(self, context: DTContext) -> torch.Tensor:
+        """``context`` as one row of floats per episode, ``[B, context_size]`` (for a replay buffer)."""
+        return torch.cat([x.reshape(x.shape[0], -1).float() for x in context.fields()], 1)
+
+    def unpack_context(self, packed: torch.Tensor) -> DTContext:
+        """The contexts of ``[B, context_size]`` rows made by :meth:`pack_context`."""
+        obs_dim, act_dim, past = self.observation_space.shape[0], self.action_space.shape[0], self.context_length - 1
+        states, actions, rtg, timesteps, mask = torch.split(packed.float(), self._widths, 1)
+        batch = packed.shape[0]
+        return DTContext(states.reshape(batch, past, obs_dim), actions.reshape(batch, past, act_dim), rtg,
+                         timesteps.round(), mask)
 
 
 # --- checkpoints in the hub's layout ----------------------------------------------------------------------------
