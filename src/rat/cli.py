@@ -154,14 +154,17 @@ def list_group() -> None:
 @click.option("--all", "show_all", is_flag=True, help="every Meta-World v3 task, not only the paper's eight")
 def list_tasks(show_all: bool) -> None:
     """Meta-World v3 tasks (the paper's eight, with their opposites and zoo victims)."""
-    from rat.envs import PAPER_TASKS, all_tasks
+    from rat.envs import LOCOMOTION_TASKS, PAPER_TASKS, all_tasks
     from rat.victims import zoo_victims
+    from rat.victims.zoo import zoo_dt_victims
 
-    zoo = zoo_victims()
+    zoo, dt = zoo_victims(), zoo_dt_victims()
     click.echo(f"{'task':<18} {'opposite':<18} zoo victims (zoo:<task> is the first)")
     for task, opposite in sorted(PAPER_TASKS.items()):
         names = ", ".join(f"zoo:{task}@{m}" for m in zoo.get(task, [])) or "-"
         click.echo(f"{task:<18} {opposite:<18} {names}")
+    for task in LOCOMOTION_TASKS:
+        click.echo(f"{task:<18} {'-':<18} {'zoo:' + dt[task] + ' (Decision Transformer)' if task in dt else '-'}")
     if show_all:
         click.echo("\nall tasks (Meta-World v3, then Gymnasium MuJoCo locomotion): " + ", ".join(all_tasks()))
 
@@ -264,6 +267,32 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
         click.echo(f"{victim_spec} on {env_task}, target '{target}': {result.summary()}")
         if video:
             click.echo(f"video: {video}")
+
+
+DT = "rat.victims.dt_training:DTConfig"
+
+
+@victim.command("dt")
+@config_option(DT, "task", type=click.Choice(["HalfCheetah-v5", "Walker2d-v5"]))
+@config_option(DT, "expert", help="the expert whose episodes are the data: a victim spec (a SAC victim's run folder)")
+@config_option(DT, "data", help="or expert data already collected (expert-data.safetensors of an earlier run)")
+@config_option(DT, "data_episodes", "--episodes", type=int)
+@config_option(DT, "updates", type=int)
+@config_option(DT, "seed", type=int)
+@set_option("the Decision Transformer (rat.victims.dt_training.DTConfig)")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/dt-<task>-<seed>]")
+@click.pass_context
+def victim_dt(ctx, task, seed, out, assignments, **_) -> None:
+    """Make a Decision Transformer victim: an expert's episodes, then a Decision Transformer trained on them
+    (the hub checkpoints' shape), saved in the hub's layout. Re-running with the same --out resumes."""
+    from rat.runs import check_run_dir
+    from rat.victims.dt_training import DTConfig, train_dt
+
+    config = config_from_options(ctx, DTConfig, assignments=assignments)
+    out = check_run_dir(out or Path("runs") / f"dt-{task.lower()}-{seed}")
+    directory, result = train_dt(config, out, progress=True)
+    click.echo(f"victim: {directory} (load it as {directory}, or copy it into a zoo as dt/{task.lower()})")
+    click.echo(f"clean evaluation on {task}: {result.summary()}")
 
 
 @victim.command("zoo")

@@ -14,7 +14,9 @@ def load_victim(spec: str) -> ModuleVictim:
     """Load a victim from a specification string.
 
     - ``zoo:<task>``: a zoo victim, e.g. ``zoo:drawer-open-v3`` (the SAC one where one exists, else the
-      behaviour clone), or ``zoo:<task>@sac`` / ``zoo:<task>@bc`` for one kind;
+      behaviour clone), or ``zoo:<task>@sac`` / ``zoo:<task>@bc`` for one kind; ``zoo:dt/<task>`` for a
+      Decision Transformer (``zoo:dt/halfcheetah-v5``);
+    - a folder in the Hugging Face hub's layout holding a Decision Transformer and ``rat_dt.json``;
     - ``sb3:<file>`` or any ``*.zip``: a Stable-Baselines3 SAC/TD3/PPO model file;
     - a path to this project's victim checkpoint (``victim.json``/``.safetensors``, or the run
       directory holding them).
@@ -26,6 +28,10 @@ def load_victim(spec: str) -> ModuleVictim:
     path = Path(spec)
     if path.suffix == ".zip":
         return load_sb3_victim(path)
+    if path.is_dir() and (path / "config.json").is_file() and not (path / "victim.json").exists():
+        from rat.victims.sequence import load_decision_transformer
+
+        return load_decision_transformer(path, name=spec)
     if path.is_dir():
         path = path / "victim"
     if not path.with_suffix(".json").exists() and not path.exists():

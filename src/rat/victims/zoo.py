@@ -9,6 +9,10 @@ agents like the paper's; ``@bc``: behaviour clones, also stored as plain ``<task
 ``zoo:<task>`` is the SAC victim where one exists, else the behaviour clone;
 ``zoo:<task>@sac`` and ``zoo:<task>@bc`` name one kind.
 
+Decision Transformer victims (the paper's case II) are folders in the hub's layout,
+``zoo/dt/<task>/`` (``config.json``, ``model.safetensors``, ``rat_dt.json``), named
+``zoo:dt/halfcheetah-v5`` and ``zoo:dt/walker2d-v5``; ``rat victim dt`` makes them.
+
 ``zoo:<task>`` looks first in the user's zoo (``$RAT_ZOO``, else ``$XDG_DATA_HOME/rat/zoo``, else
 ``~/.local/share/rat/zoo``), where ``rat victim zoo`` writes, then in the shipped one; the package
 itself is written only when asked (``--dest``).
@@ -64,6 +68,21 @@ def zoo_victims(directory: Path | None = None) -> dict[str, list[str]]:
     return {t: sorted(m, key=lambda x: (x != "sac", x)) for t, m in sorted(merged.items())}
 
 
+DT_PREFIX = "dt/"
+
+
+def zoo_dt_victims(directory: Path | None = None) -> dict[str, str]:
+    """``{task: name}`` of the Decision Transformer victims (``{"HalfCheetah-v5": "dt/halfcheetah-v5"}``)."""
+    from rat.envs import LOCOMOTION_TASKS
+
+    found = {}
+    for d in [directory] if directory is not None else zoo_dirs():
+        for task in LOCOMOTION_TASKS:
+            if (Path(d) / "dt" / task.lower() / "config.json").is_file():
+                found.setdefault(task, DT_PREFIX + task.lower())
+    return found
+
+
 def zoo_tasks(directory: Path | None = None) -> list[str]:
     """Tasks with a zoo victim (in ``directory``, or in any zoo)."""
     return list(zoo_victims(directory))
@@ -87,8 +106,22 @@ def zoo_path(name: str, directory: Path | None = None) -> Path:
                    "`rat victim zoo`)")
 
 
+def zoo_dt_path(name: str, directory: Path | None = None) -> Path:
+    """The folder of zoo Decision Transformer ``dt/<task>``: the first zoo that has one."""
+    for d in [directory] if directory is not None else zoo_dirs():
+        if (Path(d) / name / "config.json").is_file():
+            return Path(d) / name
+    known = [ZOO_PREFIX + n for n in zoo_dt_victims(directory).values()]
+    raise RatError(f"no zoo Decision Transformer '{name}'; zoo ones: {', '.join(known) or 'none'} (make one with "
+                   "`rat victim dt`)")
+
+
 def load_zoo_victim(name: str) -> ModuleVictim:
-    """The zoo victim ``<task>`` or ``<task>@<method>`` (frozen)."""
+    """The zoo victim ``<task>``, ``<task>@<method>`` or ``dt/<task>`` (frozen)."""
+    if name.startswith(DT_PREFIX):
+        from rat.victims.sequence import load_decision_transformer
+
+        return load_decision_transformer(zoo_dt_path(name), name=f"{ZOO_PREFIX}{name}")
     return load_rat_victim(zoo_path(name), name=f"{ZOO_PREFIX}{name}")
 
 
