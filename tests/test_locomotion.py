@@ -62,3 +62,11 @@ def test_a_locomotion_target_refuses_another_robot():
         get_target("cheetah-pushup").env_task("Walker2d-v5")
     with pytest.raises(RatError, match="for Walker2d-v5 victims"):
         get_target("walker-one-foot").env_task("drawer-open-v3")
+
+
+def test_an_attack_switches_within_each_tasks_own_episode_length():
+    from rat.envs import make_task
+    from rat.envs.tasks import episode_length
+
+    assert episode_length(make_task("HalfCheetah-v5")) == 1000 and episode_length(make_task("Walker2d-v5")) == 1000
+    assert episode_length(make_task("drawer-open-v3")) == 500

@@ -149,11 +149,12 @@ def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_v
                               target_return=-2.0, return_scale=10.0, context_length=4)
     victim = load_decision_transformer(tmp_path / "dt")
     before = {k: v.clone() for k, v in victim.state_dict().items()}
-    cfg = replace(small_config(700), weighting_every=100)
+    cfg = replace(small_config(700), weighting_every=100, horizon=None)  # H: the environment's time limit
     report = train_rat(cfg, AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False), tmp_path / "run")
     assert report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
     assert report.max_perturbation <= 0.1 + 1e-9
     assert all(torch.equal(before[k], v) for k, v in victim.state_dict().items())  # the victim never changes
+    assert __import__("json").loads((tmp_path / "run" / "config.json").read_text())["rat"]["horizon"] == HORIZON
 
     state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
     buffer = state["learner"]["buffer"]

@@ -40,6 +40,7 @@ from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
 from rat.device import resolve_device
 from rat.envs.physics import physics_of
+from rat.envs.tasks import episode_length
 from rat.errors import RatError
 from rat.loop import TrainingLoop, write_report
 from rat.plots import plot_training
@@ -73,7 +74,7 @@ class RATConfig:
     kl_form: str = "exact"  #: "exact" Gaussian KL, or "released"
     hypergradient: str = "exact"  #: "exact" per-state hypergradient, or "batch-mean" (released)
     ablation: str = "none"  #: none, no-weighting, no-combined, no-intention
-    horizon: int = 500  #: episode length H of the combined behaviour policy's switch
+    horizon: int | None = None  #: episode length H of the combined behaviour policy's switch (None: the env's time limit)
     eval_every: int = 10_000  #: steps between attack evaluations
     eval_episodes: int = 10  #: episodes per evaluation during training
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
@@ -98,9 +99,11 @@ class RATConfig:
         if self.kl_form not in ("exact", "released") or self.hypergradient not in ("exact", "batch-mean"):
             raise RatError("kl-form must be exact or released, hypergradient exact or batch-mean")
         for name in ("total_steps", "adversary_every", "adversary_updates", "adversary_batch", "weighting_every",
-                     "horizon", "eval_every", "eval_episodes", "final_eval_episodes", "checkpoint_every"):
+                     "eval_every", "eval_episodes", "final_eval_episodes", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        if self.horizon is not None and self.horizon <= 0:
+            raise RatError(f"horizon must be positive, got {self.horizon}")
         self.pebble.check_steps(self.total_steps, "RAT")  # the adversary starts at the first query round
 
     @property
@@ -208,7 +211,7 @@ class RATTrainer:
         self.adversary_opt = torch.optim.Adam(self.adversary.parameters(), lr=cfg.adversary_lr)
         self.weighting_opt = torch.optim.Adam(self.weighting.parameters(), lr=cfg.weighting_lr)
         mode = {"no-combined": "intention", "no-intention": "victim"}.get(cfg.ablation, "combined")
-        self.behaviour = CombinedBehaviourPolicy(cfg.horizon, mode)
+        self.behaviour = CombinedBehaviourPolicy(cfg.horizon or episode_length(env), mode)
         self.use_weighting = cfg.ablation == "none"
         self.counters = {"adversary_updates": 0, "weighting_updates": 0}
         self.best: dict | None = None  # imitate="best": frozen copies of π_θ's actor and critic, its temperature
@@ -368,6 +371,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     """
     cfg, target = config, setup.target
     env = setup.make_env(cfg.seed)  # checked before the run directory exists, so a mistake leaves nothing behind
+    cfg = replace(cfg, horizon=cfg.horizon or episode_length(env))  # recorded as used
     task = setup.describe.get("task")
     check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
     run = Run(out, {"rat": to_jsonable(cfg), **setup.describe}, tensorboard)

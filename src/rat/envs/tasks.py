@@ -27,6 +27,11 @@ def check_task(task: str) -> str:
     return task
 
 
+def episode_length(env: gym.Env, default: int = metaworld.HORIZON) -> int:
+    """The environment's time limit (its spec's ``max_episode_steps``), else ``default``."""
+    return int(getattr(getattr(env, "spec", None), "max_episode_steps", None) or default)
+
+
 def make_task(task: str, seed: int = 0, render_mode: str | None = None, **kwargs) -> gym.Env:
     """Make a task by name: a :class:`~rat.envs.metaworld.MetaWorldTask` or a
     :class:`~rat.envs.locomotion.LocomotionTask`."""
