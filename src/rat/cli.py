@@ -223,7 +223,7 @@ def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) ->
     from rat.runs import check_run_dir
 
     check_task(task)
-    config = config_from_options(ctx, VictimConfig, base=VictimConfig(task=task), assignments=assignments)
+    config = config_from_options(ctx, VictimConfig, base=VictimConfig(task=task, method=method), assignments=assignments)
     resolve_device(config.device)  # a missing GPU is said before anything is written
     out = check_run_dir(out or Path("runs") / f"victim-{task}-{method}-{seed}")
     path, result = train_victim(config, out, progress=True, tensorboard=tensorboard)
@@ -286,13 +286,14 @@ def victim_dt(ctx, task, seed, out, assignments, **_) -> None:
     """Make a Decision Transformer victim: an expert's episodes, then a Decision Transformer trained on them
     (the hub checkpoints' shape), saved in the hub's layout. Re-running with the same --out resumes."""
     from rat.runs import check_run_dir
-    from rat.victims.dt_training import DTConfig, train_dt
+    from rat.victims.dt_training import DTConfig, d4rl_score, train_dt
 
     config = config_from_options(ctx, DTConfig, assignments=assignments)
     out = check_run_dir(out or Path("runs") / f"dt-{task.lower()}-{seed}")
     directory, result = train_dt(config, out, progress=True)
     click.echo(f"victim: {directory} (load it as {directory}, or copy it into a zoo as dt/{task.lower()})")
-    click.echo(f"clean evaluation on {task}: {result.summary()}")
+    click.echo(f"clean evaluation on {task}: return {result.mean_return:.1f} +- {result.std_return:.1f} over "
+               f"{result.episodes} episodes (D4RL score {d4rl_score(task, result.mean_return):.1f})")
 
 
 @victim.command("zoo")

@@ -267,13 +267,18 @@ class DTTrainer:
         return {}
 
 
-def expert_data(config: DTConfig, run_dir: Path, progress: bool = True) -> ExpertData:
-    """The data of ``config``: loaded from ``config.data``, or collected from ``config.expert`` once per run."""
+def check_data_source(config: DTConfig) -> None:
+    """One of ``expert`` and ``data``, and the data file where one is named (checked before anything is written)."""
     if bool(config.expert) == bool(config.data):
         raise RatError("give the expert to collect data from (--expert) or data already collected (--data), one of the two")
+    if config.data and not Path(config.data).is_file():
+        raise RatError(f"no expert data at '{config.data}'; give a file written by rat victim dt, or --expert")
+
+
+def expert_data(config: DTConfig, run_dir: Path, progress: bool = True) -> ExpertData:
+    """The data of ``config``: loaded from ``config.data``, or collected from ``config.expert`` once per run."""
+    check_data_source(config)
     if config.data:
-        if not Path(config.data).is_file():
-            raise RatError(f"no expert data at '{config.data}'; give a file written by rat victim dt, or --expert")
         data = ExpertData.load(config.data)
     else:
         path = run_dir / "expert-data.safetensors"
@@ -296,6 +301,7 @@ def train_dt(config: DTConfig, out: str | Path, progress: bool = True) -> tuple[
     """Collect expert data and train a Decision Transformer on it in run directory ``out`` (resuming if
     interrupted). Returns the hub-layout directory of the victim (``out/victim``) and its clean evaluation.
     """
+    check_data_source(config)
     run = Run(out, config)
     data = expert_data(config, run.dir, progress)
     trainer = DTTrainer(config, data, seed_everything(config.seed))
