@@ -1,7 +1,7 @@
 """The paper's table 1 on one command: a resumable grid of task × scenario × method × seed.
 
-Every cell trains one attack against the zoo victim of its task and evaluates it over 30
-episodes; its directory is ``<out>/cells/<task>/<scenario>/<method>/seed<k>/``, and the cell is
+Every cell trains one attack against the zoo victim of its task (``zoo:<task>``; a task may also
+name a zoo Decision Transformer, ``dt/halfcheetah-v5``) and evaluates it over 30 episodes; its directory is ``<out>/cells/<task>/<scenario>/<method>/seed<k>/``, and the cell is
 finished when its ``result.json`` exists (written last, atomically), so re-running a grid skips
 finished cells and resumes interrupted ones from their checkpoints.
 
@@ -81,9 +81,11 @@ class Cell:
 def grid_cells(tasks: Iterable[str], scenarios: Iterable[str], methods: Iterable[str], seeds: Iterable[int]) -> list[Cell]:
     from rat.envs import check_task
 
+    from rat.victims.zoo import DT_PREFIX, zoo_dt_path
+
     tasks, scenarios, methods, seeds = list(tasks), list(scenarios), list(methods), list(seeds)
     for task in tasks:
-        check_task(task)
+        zoo_dt_path(task) if task.startswith(DT_PREFIX) else check_task(task)
     from rat.attacks import check_reward, get_attack
     from rat.envs import get_target
 
@@ -366,7 +368,7 @@ def plot_curves(out: Path, task: str, rows: list[dict]) -> Path | None:
         if ax.get_lines():
             ax.legend(fontsize=8)
     fig.tight_layout()
-    path = out / f"curves-{task}.png"
+    path = out / f"curves-{task.replace('/', '-')}.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
