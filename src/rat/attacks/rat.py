@@ -219,7 +219,8 @@ class RATTrainer:
         self.obs: np.ndarray | None = None  # None between episodes
         self.victim_policy = VictimPolicy(self.victim)  # keeps a sequence victim's context over the episode
         self.sequence = is_sequence(self.victim)
-        capacity = self.learner.buffer.capacity  # a sequence victim's context at each stored state, row for row:
+        # a sequence victim's context at each stored state, row for row (a run never stores more than its steps):
+        capacity = min(self.learner.buffer.capacity, cfg.total_steps)
         self.contexts = np.zeros((capacity, self.victim.context_size), np.float32) if self.sequence else None
 
     @property
