@@ -74,6 +74,7 @@ def test_a_decision_transformer_learns_the_experts_actions_and_ships_in_the_hub_
     assert meta["d4rl_score"] == pytest.approx(d4rl_score(TASK, result.mean_return), abs=0.1)
 
     victim = load_victim(str(directory))  # a folder in the hub's layout
+    assert load_victim(str(tmp_path / "run")).meta["task"] == TASK  # or the run that made it
     untrained = DTTrainer(config, ExpertData.load(data_file), np.random.default_rng(0)).victim()
     env, expert = make_task(TASK, seed=99), linear_expert()
     errors = {"trained": [], "untrained": []}

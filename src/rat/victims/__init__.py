@@ -28,11 +28,12 @@ def load_victim(spec: str) -> ModuleVictim:
     path = Path(spec)
     if path.suffix == ".zip":
         return load_sb3_victim(path)
-    if path.is_dir() and (path / "config.json").is_file() and not (path / "victim.json").exists():
-        from rat.victims.sequence import load_decision_transformer
-
-        return load_decision_transformer(path, name=spec)
     if path.is_dir():
+        for folder in (path, path / "victim"):  # a hub-layout folder, or the run of `rat victim dt` holding one
+            if any((folder / w).is_file() for w in ("model.safetensors", "pytorch_model.bin")):
+                from rat.victims.sequence import load_decision_transformer
+
+                return load_decision_transformer(folder, name=spec)
         path = path / "victim"
     if not path.with_suffix(".json").exists() and not path.exists():
         raise RatError(f"no victim at '{spec}': give zoo:<task>, a Stable-Baselines3 .zip, or a victim checkpoint "
