@@ -111,6 +111,7 @@ def test_oracle_baselines_beat_a_random_attack_on_the_point_environment(tmp_path
     p = stats.fisher_exact([[hits, 50 - hits], [rnd, 50 - rnd]], alternative="greater").pvalue
     assert hits / 50 >= 0.15 and p < 0.01, f"{method} {hits}/50, random {rnd}/50, p={p:.2g}"
     assert report.reward == "oracle" and report.max_perturbation <= EPS + 1e-9
+    assert report.clean_success_rate is not None and report.clean_success_rate < report.attack_success_rate
     with open(tmp_path / method / "metrics.csv") as f:
         evals = [row["eval_success_rate"] for row in csv.DictReader(f) if row.get("eval_success_rate")]
     assert len(evals) == steps // 4000 and report.details["ppo_updates"] > 50  # PPO's updates ran and were evaluated

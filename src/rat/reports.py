@@ -64,6 +64,8 @@ class AttackReport(_Report):
         max_perturbation, mean_perturbation: over every step of the final evaluation.
         steps, labels: environment steps trained and labels used.
         train_minutes_this_session: wall-clock minutes of the call that finished the run.
+        clean_success_rate: the unattacked victim's success at the same target over the same
+            episodes; an attack is worth only what it adds to this (``None`` in older reports).
         details: the method's own numbers.
     """
 
@@ -84,13 +86,21 @@ class AttackReport(_Report):
     labels: int = 0
     victim_task: str | None = None
     train_minutes_this_session: float = 0.0
+    clean_success_rate: float | None = None
     details: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> str:
         lo, hi = self.attack_success_ci
-        return (f"attack success: {100 * self.attack_success_rate:.1f}% (95% CI {100 * lo:.1f}-{100 * hi:.1f}%, "
+        text = (f"attack success: {100 * self.attack_success_rate:.1f}% (95% CI {100 * lo:.1f}-{100 * hi:.1f}%, "
                 f"{self.episodes} episodes), {self.labels} labels, {self.steps} steps; "
                 f"max perturbation {self.max_perturbation:.4f} <= epsilon {self.epsilon:g} ({self.norm})")
+        if self.clean_success_rate is None:
+            return text
+        text += f"; the clean victim: {100 * self.clean_success_rate:.1f}%"
+        if self.clean_success_rate >= 0.5 * max(self.attack_success_rate, 1e-9):
+            text += (" -- the victim reaches this target on its own about as often, so this success says little "
+                     "about the attack; choose a target it does not reach unattacked")
+        return text
 
 
 @dataclass

@@ -47,8 +47,12 @@ class AttackEval:
                 f"max {self.max_perturbation:.4f} <= {self.threat}")
 
     def report(self, method: str, reward: str, setup, seed: int, *, steps: int = 0, labels: int = 0,
-               minutes: float = 0.0, details: dict | None = None) -> AttackReport:
-        """The run's :class:`~rat.reports.AttackReport` with this as its final evaluation."""
+               minutes: float = 0.0, details: dict | None = None, clean: EvalResult | None = None) -> AttackReport:
+        """The run's :class:`~rat.reports.AttackReport` with this as its final evaluation.
+
+        ``clean`` is the unattacked victim on the same target and episodes (:func:`evaluate_clean`):
+        the yardstick that says whether the attack did anything.
+        """
         d = setup.describe
         return AttackReport(
             method=method, reward=reward, victim=d.get("victim", setup.victim.name), task=d.get("task", "?"),
@@ -56,7 +60,8 @@ class AttackEval:
             attack_success_rate=self.result.success_rate, attack_success_ci=list(self.result.success_ci),
             episodes=self.result.episodes, max_perturbation=self.max_perturbation,
             mean_perturbation=self.mean_perturbation, steps=steps, labels=labels, victim_task=d.get("victim_task"),
-            train_minutes_this_session=round(minutes, 2), details=details or {})
+            train_minutes_this_session=round(minutes, 2), details=details or {},
+            clean_success_rate=None if clean is None else clean.success_rate)
 
 
 def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, target: TargetBehaviour,
@@ -71,3 +76,8 @@ def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, ta
                       video_episodes=video_episodes)
     norms = np.asarray(attacked.norms)
     return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms), list(attacked.records))
+
+
+def evaluate_clean(victim: Victim, env: gym.Env, target: TargetBehaviour, episodes: int, seed: int) -> EvalResult:
+    """The unattacked victim's success at ``target`` over the episodes :func:`evaluate_attack` runs with ``seed``."""
+    return evaluate(numpy_policy(victim), env, episodes, seed, target=target)

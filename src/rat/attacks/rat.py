@@ -34,7 +34,7 @@ import torch
 
 from rat import seeds
 from rat.attacks.base import AttackSetup, register_attack
-from rat.attacks.evaluation import AttackEval, evaluate_attack
+from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
 from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss
 from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
@@ -397,11 +397,14 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL)
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
+    clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
+                           seeds.FINAL)
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
-                          labels=store.count(trainer.learner.source), minutes=train_seconds / 60, details=details)
+                          labels=store.count(trainer.learner.source), minutes=train_seconds / 60, details=details,
+                          clean=clean)
     write_report(run.dir, report)
     store.close()
     return report

@@ -15,7 +15,7 @@ import gymnasium as gym
 
 from rat import seeds
 from rat.attacks.base import AttackSetup, check_reward, get_attack
-from rat.attacks.evaluation import evaluate_attack
+from rat.attacks.evaluation import evaluate_attack, evaluate_clean
 from rat.attacks.threat import Perturbation
 from rat.checkpoint import save_checkpoint
 from rat.loop import write_report
@@ -65,8 +65,10 @@ def baseline_run(method: str, setup: AttackSetup, out: str | Path, config: dict[
                             final_episodes, seeds.FINAL)
     if not final.within_budget:
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {threat.epsilon}")
+    clean = evaluate_clean(setup.victim, setup.make_env(seed + seeds.EVAL_ENV), setup.target, final_episodes,
+                           seeds.FINAL)
     report = final.report(method, setup.reward, setup, seed, steps=int(details.pop("steps", 0)),
                           labels=int(details.pop("labels", 0)), minutes=(time.perf_counter() - started) / 60,
-                          details=details)
+                          details=details, clean=clean)
     write_report(run.dir, report)
     return report

@@ -9,17 +9,16 @@ from __future__ import annotations
 from pathlib import Path
 
 from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta
-from rat.attacks.evaluation import evaluate_attack
+from rat.attacks.evaluation import evaluate_attack, evaluate_clean
 from rat.attacks.threat import ThreatModel
 from rat.envs import check_task, get_target, make_task
 from rat.envs.targets import TargetBehaviour
 from rat.errors import RatError
-from rat.eval import evaluate
 from rat.experiments.presets import attack_preset
 from rat.preferences.labeller import Labeller
 from rat.reports import AttackReport
 from rat.victims import load_victim
-from rat.victims.base import Victim, numpy_policy
+from rat.victims.base import Victim
 
 
 def attack_setup(victim_spec: str, target_name: str, threat: ThreatModel = ThreatModel(), seed: int = 0,
@@ -72,7 +71,7 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     env = make_task(meta["task"], seed=seed, render_mode="rgb_array" if video else None)
     attacked = evaluate_attack(victim, perturbation, env, target, threat, episodes, seed, video=video,
                                progress=progress, video_episodes=video_episodes)
-    clean = evaluate(numpy_policy(victim), make_task(meta["task"], seed=seed), episodes, seed, target=target)
+    clean = evaluate_clean(victim, make_task(meta["task"], seed=seed), target, episodes, seed)
     return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"],
             "method": meta.get("method", "rat"), "epsilon": threat.epsilon, "norm": threat.norm, "attack": attacked,
             "clean": clean}

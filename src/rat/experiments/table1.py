@@ -166,7 +166,8 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "max_perturbation": report.max_perturbation, "epsilon": preset.epsilon, "norm": preset.norm,
            "preset": preset.name, "minutes": round((time.perf_counter() - started) / 60, 2),
            "victim": setup.victim.name, "victim_method": setup.victim.meta.get("method", "?"),
-           "last_attack_success_rate": report.details.get("last_attack_success_rate", report.attack_success_rate)}
+           "last_attack_success_rate": report.details.get("last_attack_success_rate", report.attack_success_rate),
+           "clean_success_rate": report.clean_success_rate}
     tmp = directory / "result.json.tmp"
     tmp.write_text(json.dumps(row, indent=1))
     os.replace(tmp, directory / "result.json")  # written last: the cell is finished
@@ -300,7 +301,7 @@ def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
     """``results.csv``, ``table1.md`` and ``curves-<task>.png`` from the finished cells."""
     fields = ["task", "scenario", "method", "seed", "attack_success_rate", "ci_low", "ci_high", "episodes", "labels",
               "max_perturbation", "epsilon", "norm", "preset", "minutes", "victim", "victim_method",
-              "last_attack_success_rate"]
+              "last_attack_success_rate", "clean_success_rate"]
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")
         writer.writeheader()
@@ -316,9 +317,10 @@ def markdown_table(rows: list[dict], preset: GridPreset) -> str:
     scenarios = list(SCENARIOS) + sorted({r["scenario"] for r in rows} - set(SCENARIOS))
     lines = [f"Attack success rate (%), mean ± std over seeds (n), {preset.episodes} episodes per seed; "
              f"ε = {preset.epsilon} ({preset.norm}, raw observation units); preset `{preset.name}`. "
-             "Each cell: **ours** / paper (v2 tasks, 10⁶ steps).", "",
-             "| scenario | victim task (paper row) | " + " | ".join(METHOD_NAMES.get(m, m) for m in methods) + " |",
-             "| --- | --- |" + " ---: |" * len(methods)]
+             "Each cell: **ours** / paper (v2 tasks, 10⁶ steps). *clean*: the unattacked victim's success at "
+             "the same target, the yardstick every attack must beat.", "",
+             "| scenario | victim task (paper row) | clean | " + " | ".join(METHOD_NAMES.get(m, m) for m in methods)
+             + " |", "| --- | --- | ---: |" + " ---: |" * len(methods)]
     for scenario in scenarios:
         for task in sorted({r["task"] for r in rows if r["scenario"] == scenario}):
             row_task = paper_row(task, scenario)
@@ -331,7 +333,10 @@ def markdown_table(rows: list[dict], preset: GridPreset) -> str:
                 theirs = f"{paper[method][0]:.1f}" if method in paper else "–"
                 cells.append(f"{ours} / {theirs}")
             label = task if row_task == task else f"{task} ({row_task})"
-            lines.append(f"| {scenario} | {label} | " + " | ".join(cells) + " |")
+            clean = [100 * r["clean_success_rate"] for r in rows if (r["task"], r["scenario"]) == (task, scenario)
+                     and r.get("clean_success_rate") not in (None, "")]
+            clean_cell = f"{np.mean(clean):.1f}" if clean else "–"
+            lines.append(f"| {scenario} | {label} | {clean_cell} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -1,0 +1,20 @@
+"""Attack reports: the clean victim's success stands beside the attack's, and says when a target is vacuous."""
+
+from rat.reports import AttackReport
+
+BASE = dict(method="rat", reward="labels", victim="zoo:drawer-open-v3", task="drawer-close-v3", target="opposite",
+            epsilon=0.1, norm="linf", seed=0, attack_success_rate=1.0, attack_success_ci=[0.886, 1.0], episodes=30,
+            max_perturbation=0.1, mean_perturbation=0.08)
+
+
+def test_a_report_says_when_the_clean_victim_already_reaches_the_target():
+    vacuous = AttackReport(**BASE, clean_success_rate=29 / 30).summary()
+    assert "the clean victim: 96.7%" in vacuous and "reaches this target on its own" in vacuous
+    real = AttackReport(**BASE, clean_success_rate=0.0).summary()
+    assert "the clean victim: 0.0%" in real and "on its own" not in real
+
+
+def test_a_report_written_before_clean_success_was_recorded_still_reads(tmp_path):
+    (tmp_path / "report.json").write_text(__import__("json").dumps(BASE))
+    report = AttackReport.read(tmp_path)
+    assert report.clean_success_rate is None and "clean victim" not in report.summary()
