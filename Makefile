@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/rat attack train --victim zoo:drawer-open-v3 --target opposite \
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(BIN)/rat attack train --victim zoo:drawer-open-v3@bc --target opposite \
 		--epsilon 0.1 --budget 1000 --preset cpu --seed 0 --out runs/demo
 
 test: $(STAMP) browser

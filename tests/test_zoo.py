@@ -82,3 +82,28 @@ def test_the_shipped_sac_victim_is_sacs_own_actor_and_what_a_bare_zoo_name_means
     assert meta["architecture"]["hidden"] == 256 and meta["architecture"]["layers"] == 3
     timings = json.loads((ZOO_DIR / "timings.json").read_text())
     assert timings["drawer-open-v3@sac"]["clean_success"] >= 0.95 and timings["drawer-open-v3@sac"]["episodes"] == 50
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["HalfCheetah-v5", "Walker2d-v5"])
+def test_the_shipped_decision_transformers_load_act_as_recorded_and_say_how_good_they_are(task, capsys):
+    from rat.cli import main
+    from rat.victims.zoo import zoo_dt_victims
+
+    name = zoo_dt_victims(ZOO_DIR)[task]
+    assert name == f"dt/{task.lower()}"
+    victim = load_victim(f"zoo:{name}")
+    meta = victim.meta
+    config = json.loads((ZOO_DIR / name / "config.json").read_text())
+    assert (config["hidden_size"], config["n_layer"], config["n_head"]) == (128, 3, 1)  # the hub checkpoints' shape
+    assert meta["context_length"] == 20 and meta["data"]["episodes"] >= 100 and meta["train_seconds"] > 0
+    assert meta["clean_eval"]["episodes"] >= 10 and meta["d4rl_score"] > 0 and meta["d4rl_reference"]["expert"] > 0
+    env = make_task(task, seed=321)
+    check_compatible(victim, env)
+    result = evaluate(numpy_policy(victim), env, episodes=1, seed=4242)  # one fresh episode, 1000 steps
+    recorded = meta["clean_eval"]
+    assert result.mean_return > recorded["mean_return"] - 3 * recorded["std_return"] - 0.05 * abs(recorded["mean_return"])
+    with pytest.raises(SystemExit) as done:
+        main(["victim", "eval", f"zoo:{name}", "--episodes", "1"], standalone_mode=True)
+    out = capsys.readouterr().out
+    assert done.value.code == 0 and "return" in out and "success" not in out  # locomotion's own task: a return only

@@ -53,10 +53,10 @@ def config_option(config: str, path: str, *param_decls: str, **kwargs):
     return click.option(*decls, cls=ConfigOption, config=config, path=path, **kwargs)
 
 
-def set_option(what: str):
+def set_option(what: str, example: str = "pebble.budget=5000"):
     """``--set name=value`` (repeatable): any field of ``what``'s configuration, nested ones by dotted path."""
     return click.option("--set", "assignments", multiple=True, metavar="NAME=VALUE",
-                        help=f"any setting of {what}, e.g. --set pebble.budget=5000 (repeatable; see its config class)")
+                        help=f"any setting of {what}, e.g. --set {example} (repeatable; see its config class)")
 
 
 def labeller_options(f):
@@ -211,13 +211,13 @@ _method_help = "bc: behaviour cloning of the scripted expert (minutes); sac-demo
 @config_option(VICTIM, "total_steps", type=int)
 @config_option(VICTIM, "eval_episodes", type=int)
 @config_option(VICTIM, "device", type=click.Choice(["auto", "cpu", "cuda"]))
-@set_option("the victim (rat.victims.training.VictimConfig)")
+@set_option("the victim (rat.victims.training.VictimConfig)", "sac.batch_size=256")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/victim-<task>-<method>-<seed>]")
 @click.option("--tensorboard", is_flag=True, help="also log to TensorBoard (needs the 'tensorboard' extra)")
 @click.pass_context
 def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) -> None:
     """Train a victim. Re-running with the same --out resumes an interrupted run."""
-    from rat.envs import check_task
+    from rat.envs import LOCOMOTION_TASKS, check_task
     from rat.victims.training import VictimConfig, train_victim
 
     from rat.runs import check_run_dir
@@ -228,7 +228,7 @@ def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) ->
     out = check_run_dir(out or Path("runs") / f"victim-{task}-{method}-{seed}")
     path, result = train_victim(config, out, progress=True, tensorboard=tensorboard)
     click.echo(f"victim: {path}.safetensors")
-    click.echo(f"clean evaluation on {task}: {result.summary()}")
+    click.echo(f"clean evaluation on {task}: {result.summary(with_success=task not in LOCOMOTION_TASKS)}")
 
 
 @victim.command("eval")
@@ -243,7 +243,7 @@ def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) ->
 @click.option("--json", "as_json", is_flag=True, help="print the result as JSON")
 def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes, as_json) -> None:
     """Evaluate VICTIM (zoo:<task>, an SB3 .zip, or a victim checkpoint) without attack."""
-    from rat.envs import get_target, make_task
+    from rat.envs import LOCOMOTION_TASKS, get_target, make_task
     from rat.eval import evaluate
     from rat.experiments.runner import load_victim_for
     from rat.victims import check_compatible
@@ -264,7 +264,8 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
     if as_json:
         click.echo(json.dumps({"victim": victim_spec, "task": env_task, "target": target, **result.to_dict()}))
     else:
-        click.echo(f"{victim_spec} on {env_task}, target '{target}': {result.summary()}")
+        own_return_only = target == "task" and env_task in LOCOMOTION_TASKS  # locomotion tasks have no success test
+        click.echo(f"{victim_spec} on {env_task}, target '{target}': {result.summary(not own_return_only)}")
         if video:
             click.echo(f"video: {video}")
 
@@ -279,7 +280,7 @@ DT = "rat.victims.dt_training:DTConfig"
 @config_option(DT, "data_episodes", "--episodes", type=int)
 @config_option(DT, "updates", type=int)
 @config_option(DT, "seed", type=int)
-@set_option("the Decision Transformer (rat.victims.dt_training.DTConfig)")
+@set_option("the Decision Transformer (rat.victims.dt_training.DTConfig)", "batch_size=128")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="run directory [runs/dt-<task>-<seed>]")
 @click.pass_context
 def victim_dt(ctx, task, seed, out, assignments, **_) -> None:

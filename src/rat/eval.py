@@ -39,7 +39,10 @@ class EvalResult:
     first_success_step: list[int] = field(default_factory=list)  # -1 where never
     success_at_last_step: float = 0.0  # share of episodes whose final step passes the test
 
-    def summary(self) -> str:
+    def summary(self, with_success: bool = True) -> str:
+        """One line; ``with_success=False`` for tasks that only have a return (locomotion's own task)."""
+        if not with_success:
+            return f"return {self.mean_return:.1f} +- {self.std_return:.1f} over {self.episodes} episodes"
         lo, hi = self.success_ci
         return (f"success {100 * self.success_rate:.1f}% (95% CI {100 * lo:.1f}-{100 * hi:.1f}%, "
                 f"{sum(self.successes)}/{self.episodes} episodes, any step); "
