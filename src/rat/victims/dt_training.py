@@ -170,7 +170,8 @@ def dt_model(obs_dim: int, act_dim: int, cfg: DTConfig):
     config = transformers.DecisionTransformerConfig(
         state_dim=obs_dim, act_dim=act_dim, hidden_size=cfg.hidden, n_layer=cfg.layers, n_head=cfg.heads,
         n_inner=4 * cfg.hidden, activation_function="relu", max_ep_len=cfg.max_ep_len, n_positions=1024,
-        resid_pdrop=cfg.dropout, embd_pdrop=cfg.dropout, attn_pdrop=cfg.dropout, action_tanh=True)
+        resid_pdrop=cfg.dropout, embd_pdrop=cfg.dropout, attn_pdrop=cfg.dropout, action_tanh=True,
+        bos_token_id=None, eos_token_id=None)  # GPT-2's token ids mean nothing to a model without a vocabulary
     return transformers.DecisionTransformerModel(config)
 
 

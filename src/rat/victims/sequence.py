@@ -201,7 +201,11 @@ def load_decision_transformer(directory: str | Path, name: str | None = None) ->
                        "config.json; the hub's checkpoints publish these numbers in their model cards")
     try:
         meta = json.loads((directory / DT_META).read_text())
-        config = transformers.DecisionTransformerConfig.from_json_file(str(directory / "config.json"))
+        settings = json.loads((directory / "config.json").read_text())
+        for key in ("bos_token_id", "eos_token_id"):  # GPT-2's, in the hub's configs; a DT has no vocabulary
+            if isinstance(settings.get(key), int) and settings[key] >= settings.get("vocab_size", 1):
+                settings[key] = None
+        config = transformers.DecisionTransformerConfig.from_dict(settings)
     except (json.JSONDecodeError, UnicodeDecodeError, OSError, ValueError) as exc:
         raise RatError(f"the configuration in '{directory}' is not readable ({exc.__class__.__name__}); "
                        "restore config.json and rat_dt.json") from exc
