@@ -46,7 +46,9 @@ class LocomotionTask(gym.Wrapper):
     def __init__(self, task: str, seed: int = 0, render_mode: str | None = None):
         if task not in LOCOMOTION_TASKS:
             raise RatError(f"unknown locomotion task '{task}'; use one of: {', '.join(LOCOMOTION_TASKS)}")
-        super().__init__(gym.make(task, render_mode=render_mode))
+        # the models' own "track" camera follows the body; the default free camera loses a running cheetah
+        camera = {"camera_name": "track"} if render_mode is not None else {}
+        super().__init__(gym.make(task, render_mode=render_mode, **camera))
         self.task, self._seed = task, seed
         model = self.env.unwrapped.model
         self._bodies = {model.body(i).name: i for i in range(model.nbody)}
