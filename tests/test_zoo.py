@@ -105,6 +105,7 @@ def test_the_shipped_decision_transformers_load_act_as_recorded_and_say_how_good
     meta = victim.meta
     config = json.loads((ZOO_DIR / name / "config.json").read_text())
     assert (config["hidden_size"], config["n_layer"], config["n_head"]) == (128, 3, 1)  # the hub checkpoints' shape
+    assert meta["method"] == "decision-transformer"  # what table 1's victim_method column says
     assert meta["context_length"] == 20 and meta["data"]["episodes"] >= 100 and meta["train_seconds"] > 0
     assert meta["clean_eval"]["episodes"] >= 10 and meta["d4rl_score"] > 0 and meta["d4rl_reference"]["expert"] > 0
     env = make_task(task, seed=321)

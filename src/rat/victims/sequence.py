@@ -236,5 +236,5 @@ def load_decision_transformer(directory: str | Path, name: str | None = None) ->
     return DecisionTransformerVictim(model, observation_space, action_space, meta["state_mean"], meta["state_std"],
                                      meta.get("target_return", 0.0), meta.get("return_scale", 1000.0),
                                      int(meta.get("context_length", 20)),
-                                     name=name or str(directory), meta={k: v for k, v in meta.items()
-                                                                        if k not in ("state_mean", "state_std")})
+                                     name=name or str(directory), meta={"method": "decision-transformer"} | {
+                                         k: v for k, v in meta.items() if k not in ("state_mean", "state_std")})
