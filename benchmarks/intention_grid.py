@@ -101,7 +101,10 @@ def main() -> None:
     args = parser.parse_args()
     cells = []
     for row in args.rows.split(","):
-        task, target, labels = row.split(":")
+        parts = row.split(":")
+        if len(parts) != 3 or not parts[2].isdigit():
+            parser.error(f"row '{row}' is not victim-task:target:labels (e.g. drawer-open-v3:reach:3000)")
+        task, target, labels = parts
         for mode in args.modes.split(","):
             for seed in map(int, args.seeds.split(",")):
                 cells.append((task, target, int(labels), mode, seed,
@@ -111,7 +114,8 @@ def main() -> None:
             jobs = [pool.submit(run_cell, command(t, g, n, m, s, args.steps, d), d) for t, g, n, m, s, d in cells]
             for job in jobs:
                 directory, code, minutes = job.result()
-                print(f"{directory.name}: {'done' if code == 0 else f'exit {code}'} ({minutes:.1f} min)", flush=True)
+                said = "done" if code == 0 else f"exit {code}, see {directory.parent / directory.name}.log"
+                print(f"{directory.name}: {said} ({minutes:.1f} min)", flush=True)
     text = table(cells)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "intention-grid.md").write_text(text)
