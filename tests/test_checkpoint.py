@@ -68,3 +68,50 @@ def test_kind_is_checked(tmp_path):
     save_checkpoint(tmp_path / "ck", "victim", {}, {})
     with pytest.raises(RatError, match="'victim' checkpoint, not a 'sac-run' one"):
         load_checkpoint(tmp_path / "ck", "sac-run")
+
+
+class Counter:
+    """The smallest :class:`~rat.loop.Trainer`: one unit a step, each taking ``seconds`` of a fake clock."""
+
+    kind, finished = "counter", False
+
+    def __init__(self, clock: list[float], seconds: float, die_at: int | None = None):
+        self.step, self.clock, self.seconds, self.die_at = 0, clock, seconds, die_at
+
+    def advance(self):
+        if self.step == self.die_at:
+            raise KeyboardInterrupt  # the session ends
+        self.clock[0] += self.seconds
+        self.step += 1
+        return {"x": float(self.step)}
+
+    def evaluate(self):
+        return {}
+
+    def state_dict(self):
+        return {"step": np.array([self.step])}
+
+    def load_state_dict(self, state, meta):
+        self.step = int(meta["step"])
+
+    def checkpoint_meta(self):
+        return {}
+
+
+def test_a_resumed_run_counts_the_training_time_of_every_session(tmp_path, monkeypatch):
+    from rat import loop as loop_module
+    from rat.loop import TrainingLoop
+    from rat.runs import Run
+
+    clock = [0.0]
+    monkeypatch.setattr(loop_module.time, "perf_counter", lambda: clock[0])
+    first = TrainingLoop(Run(tmp_path, {"n": 10}), Counter(clock, 2.0, die_at=7), 10, eval_every=None,
+                         checkpoint_every=5, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        first.run()  # 7 units, 14 s; the checkpoint at unit 5 holds 10 s
+    assert load_checkpoint(tmp_path / "checkpoint", "counter")[1]["seconds"] == 10.0
+    second = TrainingLoop(Run(tmp_path, {"n": 10}), Counter(clock, 3.0), 10, eval_every=None, checkpoint_every=5,
+                          progress=False)
+    assert second.resume() and second.trainer.step == 5
+    assert second.run() == 15.0  # this session: units 6-10 at 3 s
+    assert second.total_seconds == 25.0  # and the 10 s that made the checkpoint it resumed (units 6-7's lost 4 s are not)

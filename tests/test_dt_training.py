@@ -100,8 +100,8 @@ def test_a_decision_transformer_learns_the_experts_actions_and_ships_in_the_hub_
     from rat.victims.zoo import zoo_dt_victims
 
     assert zoo_dt_victims(zoo) == {TASK: "dt/halfcheetah-v5"}
-    with pytest.raises(RatError, match="no zoo Decision Transformer 'dt/walker2d-v5'.*zoo:dt/halfcheetah-v5"):
-        load_victim("zoo:dt/walker2d-v5")
+    with pytest.raises(RatError, match="no zoo Decision Transformer 'dt/hopper-v5'.*zoo:dt/halfcheetah-v5"):
+        load_victim("zoo:dt/hopper-v5")
 
 
 def test_training_resumes_exactly_from_a_checkpoint(data_file, tmp_path):

@@ -90,8 +90,8 @@ def shipped_dts() -> dict[str, str]:
     return zoo_dt_victims(ZOO_DIR)
 
 
-def test_the_zoo_ships_a_decision_transformer_for_halfcheetah():
-    assert shipped_dts()["HalfCheetah-v5"] == "dt/halfcheetah-v5"
+def test_the_zoo_ships_a_decision_transformer_for_each_locomotion_task_of_the_paper():
+    assert shipped_dts() == {"HalfCheetah-v5": "dt/halfcheetah-v5", "Walker2d-v5": "dt/walker2d-v5"}
 
 
 @pytest.mark.slow

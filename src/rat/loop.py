@@ -84,6 +84,8 @@ class TrainingLoop:
         self.at_boundary, self.desc, self.progress = checkpoint_at_boundary, desc, progress
         self.saved_step = -1
         self.started = time.perf_counter()
+        self.seconds_before = 0.0  # training seconds of the sessions before this one, as of the checkpoint resumed
+        self.session_seconds = 0.0
         self.bar: tqdm | None = None
         self._schedule(trainer.step)
 
@@ -101,13 +103,14 @@ class TrainingLoop:
             return False
         state, meta = load_checkpoint(run.checkpoint_path, self.trainer.kind)
         self.trainer.load_state_dict(state, meta)
+        self.seconds_before = float(meta.get("seconds", 0.0))  # older checkpoints did not record it
         run.logger.truncate_after(self.trainer.step)
         self._schedule(self.trainer.step)
         self.saved_step = self.trainer.step
         return True
 
     def checkpoint(self) -> None:
-        meta = {"step": self.trainer.step, **self.trainer.checkpoint_meta()}
+        meta = {"step": self.trainer.step, "seconds": round(self.total_seconds, 1), **self.trainer.checkpoint_meta()}
         save_checkpoint(self.run_dir.checkpoint_path, self.trainer.kind, self.trainer.state_dict(), meta)
         self.saved_step = self.trainer.step
 
@@ -143,15 +146,29 @@ class TrainingLoop:
             self.checkpoint()
         return self.close()
 
+    @property
+    def total_seconds(self) -> float:
+        """Training seconds over every session of the run: those before the checkpoint resumed, and this one's.
+
+        Work done after a session's last checkpoint is lost with it and counted when it is done again.
+        """
+        running = time.perf_counter() - self.started if self.bar is not None else 0.0
+        return self.seconds_before + self.session_seconds + running
+
     def open(self) -> None:
         if self.bar is None:
             self.started = time.perf_counter()
             self.bar = tqdm(total=self.total, initial=self.trainer.step, desc=self.desc, disable=not self.progress)
 
     def close(self) -> float:
+        """Close the progress bar; returns this session's seconds since :meth:`open`."""
+        seconds = 0.0
         if self.bar is not None:
             self.bar.close()
-        return time.perf_counter() - self.started
+            self.bar = None
+            seconds = time.perf_counter() - self.started
+            self.session_seconds += seconds
+        return seconds
 
     @staticmethod
     def _postfix(metrics: dict[str, float]) -> dict[str, str]:

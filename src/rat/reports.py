@@ -64,6 +64,8 @@ class AttackReport(_Report):
         max_perturbation, mean_perturbation: over every step of the final evaluation.
         steps, labels: environment steps trained and labels used.
         train_minutes_this_session: wall-clock minutes of the call that finished the run.
+        train_minutes: wall-clock minutes of training over every session of the run (a resumed run's
+            earlier sessions included; 0 in older reports).
         clean_success_rate: the unattacked victim's success at the same target over the same
             episodes; an attack is worth only what it adds to this (``None`` in older reports).
         details: the method's own numbers.
@@ -86,6 +88,7 @@ class AttackReport(_Report):
     labels: int = 0
     victim_task: str | None = None
     train_minutes_this_session: float = 0.0
+    train_minutes: float = 0.0
     clean_success_rate: float | None = None
     details: dict[str, Any] = field(default_factory=dict)
 
@@ -121,4 +124,5 @@ class IntentionReport(_Report):
     reward_pearson: float
     quality_steps: int
     train_minutes_this_session: float = 0.0
+    train_minutes: float = 0.0  #: over every session of the run (a resumed run's earlier ones included)
     details: dict[str, Any] = field(default_factory=dict)

@@ -47,9 +47,11 @@ class AttackEval:
                 f"max {self.max_perturbation:.4f} <= {self.threat}")
 
     def report(self, method: str, reward: str, setup, seed: int, *, steps: int = 0, labels: int = 0,
-               minutes: float = 0.0, details: dict | None = None, clean: EvalResult | None = None) -> AttackReport:
+               minutes: float = 0.0, train_minutes: float | None = None, details: dict | None = None,
+               clean: EvalResult | None = None) -> AttackReport:
         """The run's :class:`~rat.reports.AttackReport` with this as its final evaluation.
 
+        ``minutes`` is this call's, ``train_minutes`` training's over every session (default: ``minutes``).
         ``clean`` is the unattacked victim on the same target and episodes (:func:`evaluate_clean`):
         the yardstick that says whether the attack did anything.
         """
@@ -60,7 +62,8 @@ class AttackEval:
             attack_success_rate=self.result.success_rate, attack_success_ci=list(self.result.success_ci),
             episodes=self.result.episodes, max_perturbation=self.max_perturbation,
             mean_perturbation=self.mean_perturbation, steps=steps, labels=labels, victim_task=d.get("victim_task"),
-            train_minutes_this_session=round(minutes, 2), details=details or {},
+            train_minutes_this_session=round(minutes, 2),
+            train_minutes=round(minutes if train_minutes is None else train_minutes, 2), details=details or {},
             clean_success_rate=None if clean is None else clean.success_rate)
 
 

@@ -403,7 +403,8 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
-                          labels=store.count(trainer.learner.source), minutes=train_seconds / 60, details=details,
+                          labels=store.count(trainer.learner.source), minutes=train_seconds / 60,
+                          train_minutes=loop.total_seconds / 60, details=details,
                           clean=clean)
     write_report(run.dir, report)
     store.close()

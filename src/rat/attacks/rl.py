@@ -314,6 +314,7 @@ class PPOAttack:
                                 progress=setup.progress)
             loop.resume()
             details["ppo_updates"] = trainer.learn(loop)
+            details["train_minutes"] = loop.total_seconds / 60
             details["steps"] = trainer.step
             return {"policy": trainer.model.policy.state_dict()}, details
 

@@ -69,6 +69,6 @@ def baseline_run(method: str, setup: AttackSetup, out: str | Path, config: dict[
                            seeds.FINAL)
     report = final.report(method, setup.reward, setup, seed, steps=int(details.pop("steps", 0)),
                           labels=int(details.pop("labels", 0)), minutes=(time.perf_counter() - started) / 60,
-                          details=details, clean=clean)
+                          train_minutes=details.pop("train_minutes", None), details=details, clean=clean)
     write_report(run.dir, report)
     return report

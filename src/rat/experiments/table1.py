@@ -165,6 +165,7 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "episodes": report.episodes, "labels": report.labels,
            "max_perturbation": report.max_perturbation, "epsilon": preset.epsilon, "norm": preset.norm,
            "preset": preset.name, "minutes": round((time.perf_counter() - started) / 60, 2),
+           "train_minutes": report.train_minutes,  # every session's, where the cell resumed
            "victim": setup.victim.name, "victim_method": setup.victim.meta.get("method", "?"),
            "last_attack_success_rate": report.details.get("last_attack_success_rate", report.attack_success_rate),
            "clean_success_rate": report.clean_success_rate}
@@ -300,7 +301,7 @@ def paper_row(cell_task: str, scenario: str) -> str:
 def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
     """``results.csv``, ``table1.md`` and ``curves-<task>.png`` from the finished cells."""
     fields = ["task", "scenario", "method", "seed", "attack_success_rate", "ci_low", "ci_high", "episodes", "labels",
-              "max_perturbation", "epsilon", "norm", "preset", "minutes", "victim", "victim_method",
+              "max_perturbation", "epsilon", "norm", "preset", "minutes", "train_minutes", "victim", "victim_method",
               "last_attack_success_rate", "clean_success_rate"]
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")

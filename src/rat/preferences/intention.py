@@ -195,7 +195,7 @@ def train_intention(config: IntentionConfig, out: str | Path, progress: bool = T
         target_success_rate=final.success_rate, target_success_ci=list(final.success_ci),
         final_eval_episodes=final.episodes, preference_accuracy=quality.preference_accuracy,
         held_out_pairs=quality.held_out_pairs, reward_pearson=quality.pearson, quality_steps=quality.steps,
-        train_minutes_this_session=round(train_seconds / 60, 2))
+        train_minutes_this_session=round(train_seconds / 60, 2), train_minutes=round(loop.total_seconds / 60, 2))
     write_report(run.dir, report)
     store.close()
     return report

@@ -310,7 +310,7 @@ def train_dt(config: DTConfig, out: str | Path, progress: bool = True) -> tuple[
                         checkpoint_every=config.checkpoint_every, checkpoint_at_boundary=True,
                         desc=f"decision transformer {config.task}", progress=progress)
     loop.resume()
-    seconds = loop.run()
+    loop.run()
     victim = trainer.victim()
     env = make_task(config.task, seed=config.seed + seeds.FRESH_ENV)  # episodes never seen in training
     result = evaluate(numpy_policy(victim), env, config.eval_episodes, seed=seeds.VICTIM_FINAL + config.seed,
@@ -319,7 +319,7 @@ def train_dt(config: DTConfig, out: str | Path, progress: bool = True) -> tuple[
     directory = save_decision_transformer(
         run.dir / "victim", victim.model, trainer.segments.mean, trainer.segments.std, trainer.target_return,
         config.return_scale, context_length=config.context_length, task=config.task, commit=git_commit(),
-        train_seconds=round(seconds, 1), config=run.config,
+        train_seconds=round(loop.total_seconds, 1), config=run.config,
         data={k: data.meta.get(k) for k in ("expert", "episodes", "noise", "mean_return")} | {
             "transitions": int(len(data.rewards)), "best_return": float(data.episode_returns.max())},
         clean_eval={"episodes": result.episodes, "mean_return": result.mean_return, "std_return": result.std_return},

@@ -318,7 +318,7 @@ def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, t
                         checkpoint_at_boundary=config.method == "bc", desc=f"{config.method} {config.task}",
                         progress=progress)
     loop.resume()
-    train_seconds = loop.run()
+    loop.run()
     actor = trainer.actor.cpu()
 
     victim = ModuleVictim(actor, env.observation_space, env.action_space, name=f"{config.task}:{config.method}")
@@ -331,7 +331,7 @@ def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, t
         "method": config.method,
         "config": run.config,
         "commit": git_commit(),
-        "train_seconds": round(train_seconds, 1),
+        "train_seconds": round(loop.total_seconds, 1),  # every session's, when it resumed
         **getattr(trainer, "kept", {}),
         "clean_eval": {k: v for k, v in result.to_dict().items() if k not in ("successes", "first_success_step")},
     }
