@@ -2,13 +2,14 @@
 oracle and labels, several seeds: success every 10k steps and at the end.
 
 Each cell is the command a user would run, with the intention-policy settings of the `cpu` preset
-of a RAT run (SAC batch 256, at most 30 reward epochs a round, the label budget spent in equal
-rounds every 5,000 steps by 90% of the run). Cells run as subprocesses, ``--jobs`` at a time, one
+of a RAT run (SAC batch 256, at most 30 reward epochs and 400 updates a member a round, the label
+budget spent in equal rounds every 5,000 steps by 90% of the run); the default rows take the
+paper's label counts. Cells run as subprocesses, ``--jobs`` at a time, one
 torch thread each; a finished cell (its ``report.json``) is skipped, an unfinished one resumes, so
 the grid can span sessions.
 
     python benchmarks/intention_grid.py --out runs/intention-grid                   # the default grid
-    python benchmarks/intention_grid.py --rows drawer-open-v3:reach:3000 --seeds 0 --modes oracle
+    python benchmarks/intention_grid.py --rows drawer-open-v3:reach:9000 --seeds 0 --modes oracle
     python benchmarks/intention_grid.py --out runs/intention-grid --table-only      # just the table
 
 A row is ``victim-task:target:labels``; the table says, per cell, the success at each evaluation,
@@ -30,8 +31,8 @@ from pathlib import Path
 
 from rat.experiments.presets import rat_config
 
-#: the issue's rows: reach (the manipulation target), and two opposite behaviours (drawer-close, faucet-open)
-DEFAULT_ROWS = ("drawer-open-v3:reach:3000", "drawer-open-v3:opposite:1000", "faucet-close-v3:opposite:1000")
+#: reach (the manipulation target) and two opposite behaviours (drawer-close, faucet-open), at the paper's label counts
+DEFAULT_ROWS = ("drawer-open-v3:reach:9000", "drawer-open-v3:opposite:3000", "faucet-close-v3:opposite:5000")
 REACHED, KEPT = 0.5, 0.5
 
 
@@ -41,6 +42,8 @@ def command(task: str, target: str, labels: int, mode: str, seed: int, steps: in
     cmd = [sys.executable, "-m", "rat.cli", "intention", "train", "--task", task, "--target", target, "--steps", str(steps), "--seed", str(seed),
            "--batch-size", str(pebble.sac.batch_size), "--reward-epochs", str(pebble.reward.max_epochs),
            "--every", str(pebble.feedback_every), "--out", str(out)]
+    if pebble.reward.max_updates is not None:
+        cmd += ["--set", f"pebble.reward.max_updates={pebble.reward.max_updates}"]
     if mode == "oracle":
         return cmd + ["--oracle", "--budget", "0"]
     return cmd + ["--budget", str(labels), "--per-round", str(pebble.per_round)]
@@ -103,7 +106,7 @@ def main() -> None:
     for row in args.rows.split(","):
         parts = row.split(":")
         if len(parts) != 3 or not parts[2].isdigit():
-            parser.error(f"row '{row}' is not victim-task:target:labels (e.g. drawer-open-v3:reach:3000)")
+            parser.error(f"row '{row}' is not victim-task:target:labels (e.g. drawer-open-v3:reach:9000)")
         task, target, labels = parts
         for mode in args.modes.split(","):
             for seed in map(int, args.seeds.split(",")):

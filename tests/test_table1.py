@@ -106,3 +106,27 @@ def test_a_two_cell_grid_runs_on_a_local_ray_instance(tmp_path):
         ray.shutdown()
         subprocess.run([str(ray_bin), "stop", "--force"], capture_output=True, timeout=120)
         shutil.rmtree(temp, ignore_errors=True)
+
+
+def test_the_cpu_grid_asks_the_papers_label_counts_per_row_unless_told_otherwise():
+    cpu = GRID_PRESETS["cpu"]
+    counts = {(task, scenario): cpu.labels_for(Cell(task, scenario, "rat", 0))
+              for task in ("drawer-open-v3", "faucet-close-v3", "window-close-v3")
+              for scenario in ("manipulation", "opposite")}
+    assert counts == {("drawer-open-v3", "manipulation"): 9000, ("drawer-open-v3", "opposite"): 3000,  # drawer-close
+                      ("faucet-close-v3", "manipulation"): 9000, ("faucet-close-v3", "opposite"): 5000,  # faucet-open
+                      ("window-close-v3", "manipulation"): 9000, ("window-close-v3", "opposite"): 5000}  # window-open
+    assert cpu.labels_for(Cell("dt/halfcheetah-v5", "cheetah-backward", "rat", 0)) == 3000  # a named target
+    old = cpu.with_labels({"manipulation": 3000, "opposite": 1000})  # benchmarks/table1.md's grid
+    assert old.labels_for(Cell("faucet-close-v3", "opposite", "rat", 0)) == 1000
+    assert old.labels_for(Cell("drawer-open-v3", "manipulation", "rat", 0)) == 3000
+    with pytest.raises(RatError, match="give manipulation=N, opposite=N or target=N"):
+        cpu.with_labels({"sideways": 10})
+
+
+def test_the_grid_command_takes_label_counts_in_one_line(tmp_path, capsys):
+    from rat.cli import main
+
+    assert main(["bench", "table1", "--labels", "manipulation:3000", "--out", str(tmp_path / "g")]) != 0
+    assert "--labels 'manipulation:3000' is not SCENARIO=N" in capsys.readouterr().err
+    assert not (tmp_path / "g").exists()

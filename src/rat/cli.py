@@ -627,18 +627,28 @@ def _csv(kind):
 @click.option("--seeds", default="0,1,2", show_default=True, callback=_csv(int))
 @click.option("--preset", type=click.Choice(["cpu", "paper", "smoke"]), default="cpu", show_default=True,
               help="budgets: cpu 5e4 steps per learner (this machine), paper 1e6 (a GPU cluster), smoke (minutes)")
+@click.option("--labels", "labels", default="", callback=_csv(str),
+              help="label counts per scenario instead of the preset's (the paper's per row), e.g. "
+                   "manipulation=3000,opposite=1000; target=N for locomotion and user targets")
 @click.option("--jobs", type=int, default=2, show_default=True, help="parallel local processes")
 @click.option("--ray-address", default=None, help="run the cells as Ray tasks on this cluster ('auto', 'ray://host:10001')")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table1"), show_default=True)
 @click.pass_context
-def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, jobs, ray_address, out) -> None:
+def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out) -> None:
     """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
     from rat.experiments.presets import GRID_PRESETS
     from rat.experiments.table1 import grid_cells, run_grid
 
+    counts = {}
+    for item in labels:
+        name, _, count = item.partition("=")
+        if not count.strip().lstrip("-").isdigit():
+            raise RatError(f"--labels '{item}' is not SCENARIO=N; e.g. --labels manipulation=3000,opposite=1000")
+        counts[name.strip()] = int(count)
+    grid = GRID_PRESETS[preset].with_labels(counts) if counts else GRID_PRESETS[preset]
     cells = grid_cells(tasks, scenarios, methods, seeds)
     click.echo(f"{len(cells)} cells, preset '{preset}', {'Ray at ' + ray_address if ray_address else f'{jobs} processes'}")
-    result = run_grid(cells, GRID_PRESETS[preset], out, jobs, ray_address, echo=click.echo,
+    result = run_grid(cells, grid, out, jobs, ray_address, echo=click.echo,
                       plugins=ctx.obj["plugins"])
     click.echo(f"ran {len(result['ran'])}, skipped {len(result['skipped'])} finished, failed {len(result['failed'])}; "
                f"{out / 'table1.md'}, {out / 'results.csv'}")

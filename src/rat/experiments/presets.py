@@ -4,7 +4,8 @@
   every 5,000 steps, its label counts): for a GPU machine and many hours.
 - ``cpu``: what this project runs on a 2-core CPU machine: 50,000 environment steps, SAC and
   adversary batches of 256, the label budget spent in rounds every 5,000 steps from step 10,000
-  to 90% of the run (8 rounds at 50,000 steps), at most 30 reward-model epochs per round; the
+  to 90% of the run (8 rounds at 50,000 steps), at most 30 reward-model epochs and 400 updates per
+  member per round (so a round costs about the same at 9,000 labels as at 1,700); the
   adversary imitates the intention policy kept at the last evaluation (``imitate="best"``), and the
   adversary kept at the end is the snapshot (one per evaluation) that the final r̂ scores best.
   PPO (SA-RL, PA-AD) with SB3's default learning rate and minibatch.
@@ -61,7 +62,11 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
                         pebble=replace(pebble, budget=pebble.budget if budget is None else budget))
         return RATConfig(**(settings | overrides))
     default = PebbleConfig()
-    pebble = replace(default, sac=replace(default.sac, batch_size=256), reward=RewardModelConfig(max_epochs=30))
+    # Departure for a CPU: reward rounds capped (30 epochs, 400 updates a member), since each round trains
+    # on every label so far; budgets up to ~1,700 labels stay at 30 epochs. The paper's 9,000 labels cost
+    # 27 minutes in all with the cap (intention policy alone, reach: 93.3%; benchmarks/strength.md).
+    pebble = replace(default, sac=replace(default.sac, batch_size=256),
+                     reward=RewardModelConfig(max_epochs=30, max_updates=400))
     pebble = replace(pebble, **pebble_overrides)
     budget = (SMOKE_LABELS if preset == "smoke" else default.budget) if budget is None else budget
     total = steps or (SMOKE_STEPS["rat"] if preset == "smoke" else 50_000)
@@ -99,7 +104,7 @@ class GridPreset:
     name: str
     rat_preset: str  #: :func:`rat_config` preset
     rat_steps: int  #: RAT environment steps
-    labels: dict[str, int]  #: preference labels per scenario (RAT's, and so the preference baselines'); other targets: manipulation's
+    labels: dict[str, int]  #: preference labels per scenario (RAT's, and so the preference baselines'); "target": a named target's
     ppo_preset: str  #: :func:`ppo_preset` preset
     ppo_steps: int  #: SA-RL / PA-AD environment steps
     episodes: int = 30  #: final evaluation episodes per cell (the paper's 30)
@@ -115,16 +120,29 @@ class GridPreset:
         from rat.experiments.table1 import paper_row
 
         row = f"{cell.scenario}/{paper_row(cell.task, cell.scenario)}"
-        # a scenario named by its target (a user's behaviour) gets the manipulation scenario's count
-        return int(self.labels_by_row.get(row, self.labels.get(cell.scenario, self.labels["manipulation"])))
+        # a scenario named by its target (a locomotion target, a user's behaviour) gets the "target" count
+        fallback = self.labels.get("target", self.labels["manipulation"])
+        return int(self.labels_by_row.get(row, self.labels.get(cell.scenario, fallback)))
+
+    def with_labels(self, labels: dict[str, int]) -> "GridPreset":
+        """This preset with other label counts per scenario (``manipulation``, ``opposite``, ``target``); a
+        scenario given here ignores the preset's per-row counts for it."""
+        for scenario, count in labels.items():
+            if scenario not in ("manipulation", "opposite", "target") or count < 0:
+                raise RatError(f"labels '{scenario}={count}': give manipulation=N, opposite=N or target=N with N >= 0")
+        rows = {row: n for row, n in self.labels_by_row.items() if row.split("/")[0] not in labels}
+        return replace(self, labels=self.labels | labels, labels_by_row=rows)
 
 
 GRID_PRESETS = {
     # The paper's budgets (a GPU cluster): 10⁶ steps for every learner, its label counts.
     "paper": GridPreset("paper", "paper", 1_000_000, {"manipulation": 9000, "opposite": 5000}, "paper", 1_000_000,
                         labels_by_row={f"opposite/{t}": n for t, n in PAPER_OPPOSITE_LABELS.items()}),
-    # This project's 2-core CPU machine: 5×10⁴ steps per learner.
-    "cpu": GridPreset("cpu", "cpu", 50_000, {"manipulation": 3000, "opposite": 1000}, "cpu", 50_000),
+    # This project's 2-core CPU machine: 5×10⁴ steps per learner, the paper's label counts (a locomotion or
+    # user target: 3,000). The behaviour-clone grid of benchmarks/table1.md ran with --labels
+    # manipulation=3000,opposite=1000.
+    "cpu": GridPreset("cpu", "cpu", 50_000, {"manipulation": 9000, "opposite": 5000, "target": 3000}, "cpu", 50_000,
+                      labels_by_row={f"opposite/{t}": n for t, n in PAPER_OPPOSITE_LABELS.items()}),
     # Minutes, not results: for trying a grid or a cluster end to end.
     "smoke": GridPreset("smoke", "smoke", SMOKE_STEPS["rat"], {"manipulation": SMOKE_LABELS, "opposite": SMOKE_LABELS},
                         "smoke", SMOKE_STEPS["ppo"], episodes=SMOKE_EVALUATION["final_eval_episodes"]),
