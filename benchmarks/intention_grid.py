@@ -14,7 +14,8 @@ the grid can span sessions.
 
 A row is ``victim-task:target:labels``; the table says, per cell, the success at each evaluation,
 the 30-episode final success, and whether the behaviour, once reached (an evaluation at ≥ 50%),
-was kept to the end (final success at least half the peak).
+was kept to the end (final success at least half the peak), and the lowest evaluation after it was
+first reached (a behaviour lost for a while and found again).
 """
 
 from __future__ import annotations
@@ -74,20 +75,23 @@ def curve(directory: Path) -> list[tuple[int, float]]:
 
 def table(cells: list[tuple[str, str, int, str, int, Path]]) -> str:
     lines = ["| victim task | target | reward | seed | success during training (10 ep.) | final (30 ep.) | reached | "
-             "kept | minutes |", "| --- | --- | --- | ---: | --- | ---: | --- | --- | ---: |"]
+             "lowest after | kept | minutes |", "| --- | --- | --- | ---: | --- | ---: | --- | ---: | --- | ---: |"]
     for task, target, labels, mode, seed, directory in cells:
         points = curve(directory)
         report = directory / "report.json"
         final = json.loads(report.read_text()) if report.is_file() else None
         peak = max((s for _, s in points), default=0.0)
         reached = next((step for step, s in points if s >= REACHED), None)
+        after = [s for step, s in points if reached is not None and step > reached]
         done = final is not None
+        state = "running" if directory.is_dir() else "not started"
         kept = "–" if not done or reached is None else ("yes" if final["target_success_rate"] >= KEPT * peak else "**no**")
         lines.append(
             f"| {task} | {target} | {'oracle' if mode == 'oracle' else f'{labels} labels'} | {seed} | "
             + (", ".join(f"{step // 1000}k: {100 * s:.0f}%" for step, s in points) or "–") + " | "
-            + (f"{100 * final['target_success_rate']:.1f}%" if done else "running") + " | "
-            + (f"{reached // 1000}k" if reached is not None else "never") + f" | {kept} | "
+            + (f"{100 * final['target_success_rate']:.1f}%" if done else state) + " | "
+            + (f"{reached // 1000}k" if reached is not None else "never") + " | "
+            + (f"{100 * min(after):.0f}%" if after else "–") + f" | {kept} | "
             + (f"{final['train_minutes_this_session']:.0f}" if done else "–") + " |")
     return "\n".join(lines) + "\n"
 
