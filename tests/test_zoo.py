@@ -71,17 +71,19 @@ def test_zoo_names_pick_the_sac_victim_first_and_name_each_kind(tmp_path, monkey
     assert "zoo:window-open-v3@sac, zoo:window-open-v3@bc" in line
 
 
-def test_the_shipped_sac_victim_is_sacs_own_actor_and_what_a_bare_zoo_name_means():
+@pytest.mark.parametrize("task", ["drawer-open-v3", "faucet-close-v3"])
+def test_the_shipped_sac_victims_are_sacs_own_actors_and_what_a_bare_zoo_name_means(task):
     from rat.victims.zoo import zoo_path, zoo_victims
 
-    assert zoo_victims(ZOO_DIR)["drawer-open-v3"] == ["sac", "bc"]
-    assert zoo_path("drawer-open-v3", ZOO_DIR) == ZOO_DIR / "drawer-open-v3@sac"
-    meta = load_victim("zoo:drawer-open-v3@sac").meta
-    assert meta["method"] == "sac-demo" and meta["config"]["bc_updates"] == 0  # SAC's losses alone, no cloning
+    assert zoo_victims(ZOO_DIR)[task] == ["sac", "bc"]
+    assert zoo_path(task, ZOO_DIR) == ZOO_DIR / f"{task}@sac"
+    meta = load_victim(f"zoo:{task}@sac").meta
+    assert meta["task"] == task and meta["method"] == "sac-demo"
+    assert meta["config"]["bc_updates"] == 0  # SAC's losses alone, no cloning
     assert meta["config"]["sac"]["batch_size"] == 1024 and meta["config"]["sac"]["init_temperature"] == 0.1
     assert meta["architecture"]["hidden"] == 256 and meta["architecture"]["layers"] == 3
     timings = json.loads((ZOO_DIR / "timings.json").read_text())
-    assert timings["drawer-open-v3@sac"]["clean_success"] >= 0.95 and timings["drawer-open-v3@sac"]["episodes"] == 50
+    assert timings[f"{task}@sac"]["clean_success"] >= 0.95 and timings[f"{task}@sac"]["episodes"] == 50
 
 
 def shipped_dts() -> dict[str, str]:

@@ -1,0 +1,127 @@
+"""Can imitating π_θ make the victim do it? RAT's inner level, offline, with the imitated policy frozen.
+
+A RAT run imitates a moving intention policy on a growing buffer; this script takes both out of
+the loop. From a run directory (``rat attack train`` or ``rat intention train``) it loads the
+replay buffer and an intention policy — the π_θ a RAT run imitated last (``imitate=best``), else
+the run's current actor — fits a fresh adversary to it with RAT's inner loss (unit weights), and
+reports:
+
+- the imitation gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ on held-out recent states, as the fit goes;
+- the gap per state when Δ itself is optimised (no network): what the ε-ball allows at all;
+- the attack's success over fresh episodes of the target, and π_θ's own success there.
+
+    python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach
+    python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach --updates 20000 --recent 50000
+
+Results are recorded in ``benchmarks/strength.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rat.agents.networks import TanhGaussianActor
+from rat.attacks.evaluation import evaluate_attack
+from rat.attacks.losses import Adversary, Imitation, inner_loss
+from rat.attacks.rat import adversary_function
+from rat.attacks.threat import ThreatModel
+from rat.checkpoint import load_checkpoint
+from rat.envs import make_task
+from rat.envs.targets import get_target
+from rat.eval import evaluate
+from rat.victims import load_victim
+from rat.victims.base import Victim
+
+
+def imitated_actor(state: dict, obs_dim: int, act_dim: int) -> TanhGaussianActor:
+    """π_θ as the run's adversary imitated it last: the kept copy (imitate=best), else the current actor."""
+    agent = state["learner"]["agent"]
+    weights = state["best"]["actor"] if "best" in state else {
+        k.removeprefix("actor."): v for k, v in agent.items() if k.startswith("actor.")}
+    hidden = weights["trunk.0.weight"].shape[0]
+    layers = sum(1 for k in weights if k.endswith(".weight")) - 1
+    actor = TanhGaussianActor(obs_dim, act_dim, hidden, layers)
+    actor.load_state_dict(weights)
+    return actor.requires_grad_(False)
+
+
+def ball_gap(victim: Victim, objective: Imitation, obs: torch.Tensor, steps: int = 200) -> torch.Tensor:
+    """Per state, the smallest imitation gap Adam on Δ (through tanh, so inside the ball) finds: ``[B, act_dim]``."""
+    target = torch.tanh(objective.intention.distribution_params(obs)[0])
+    raw = torch.zeros_like(obs, requires_grad=True)
+    optimizer = torch.optim.Adam([raw], lr=0.1)
+    for _ in range(steps):
+        action = victim.act(objective.threat.perturb(obs, torch.tanh(raw)))
+        loss = ((action - target) ** 2).sum(-1).mean()
+        optimizer.zero_grad()
+        loss.backward(inputs=[raw])
+        optimizer.step()
+    with torch.no_grad():
+        return (victim.act(objective.threat.perturb(obs, torch.tanh(raw))) - target).abs()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="a RAT or intention run directory (its checkpoint)")
+    parser.add_argument("--victim", required=True, help="the victim the run attacked, e.g. zoo:drawer-open-v3")
+    parser.add_argument("--task", help="its task (default: the victim's)")
+    parser.add_argument("--target", default="reach")
+    parser.add_argument("--epsilon", type=float, default=0.1)
+    parser.add_argument("--updates", type=int, default=20_000)
+    parser.add_argument("--lr", type=float, default=3e-4)
+    parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--recent", type=int, default=20_000, help="train on the buffer's last N states")
+    parser.add_argument("--deterministic", action="store_true", help="train with Δ's mean (no exploration noise)")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+
+    state, _ = load_checkpoint(args.run / "checkpoint")
+    victim = load_victim(args.victim)
+    obs_all = torch.as_tensor(state["learner"]["buffer"]["obs"]).float()
+    pool = obs_all[-args.recent:]
+    held = obs_all[torch.randint(max(0, len(obs_all) - 20_000), len(obs_all), (1024,))]
+    act_dim = victim.act(obs_all[:1]).shape[-1]
+    actor = imitated_actor(state, obs_all.shape[1], act_dim)
+    objective = Imitation(victim, actor, None, torch.tensor(0.0), ThreatModel(args.epsilon, "linf"))
+
+    adversary = Adversary(obs_all.shape[1])
+    optimizer = torch.optim.Adam(adversary.parameters(), lr=args.lr)
+    start = time.time()
+    for update in range(1, args.updates + 1):
+        obs = pool[torch.randint(0, len(pool), (args.batch,))]
+        noise = None if args.deterministic else torch.randn_like(obs)
+        loss = inner_loss(torch.ones(args.batch), objective.kl(adversary, None, obs, noise))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward(inputs=list(adversary.parameters()))
+        optimizer.step()
+        if update % max(1, args.updates // 5) == 0:
+            print(f"update {update}: loss {loss.item():.3f}, gap on held-out states {objective.gap(adversary, held):.3f} "
+                  f"({time.time() - start:.0f} s)", flush=True)
+
+    per_dim = ball_gap(victim, objective, held[:512])
+    print(f"what the ball allows (Δ optimised per state, 512 states): gap {per_dim.norm(dim=-1).mean():.3f}, "
+          f"per dimension {[round(float(x), 3) for x in per_dim.mean(0)]}")
+    target = get_target(args.target)
+    task = target.env_task(args.task or victim.meta["task"])
+    attack = evaluate_attack(victim, adversary_function(adversary), make_task(task, seed=1), target,
+                             objective.threat, args.episodes, 1000)
+    print(f"attack success: {attack.result.success_rate:.1%} over {args.episodes} episodes")
+
+    @torch.no_grad()
+    def intention(obs: np.ndarray) -> np.ndarray:
+        return actor(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+
+    alone = evaluate(intention, make_task(task, seed=1), args.episodes, 1000, target=target)
+    print(f"π_θ alone: {alone.success_rate:.1%} over {args.episodes} episodes")
+
+
+if __name__ == "__main__":
+    main()
