@@ -8,10 +8,14 @@ reports:
 
 - the imitation gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ on held-out recent states, as the fit goes;
 - the gap per state when Δ itself is optimised (no network): what the ε-ball allows at all;
-- the attack's success over fresh episodes of the target, and π_θ's own success there.
+- the attack's success over fresh episodes of the target, and π_θ's own success there;
+- with ``--rounds K``, the same fit closed on the attacked victim's own states, DAgger-style: K times,
+  the attacked episodes' states join the pool and the adversary trains ``--round-updates`` more (the
+  shift RAT's combined behaviour policy exists to close, here closed directly).
 
     python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach
     python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach --updates 20000 --recent 50000
+    python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach --rounds 5
 
 Results are recorded in ``benchmarks/strength.md``.
 """
@@ -70,6 +74,31 @@ def ball_gap(victim: Victim, objective: Imitation, obs: torch.Tensor, steps: int
         return (victim.act(objective.threat.perturb(obs, torch.tanh(raw))) - target).abs()
 
 
+def refined(victim: Victim, objective: Imitation, adversary: Adversary, steps: int):
+    """A perturbation that starts at the adversary's Δ and runs ``steps`` Adam steps on Δ itself, per
+    observation, towards π_θ's action there: what the attack would do if its network fitted as well as the ball allows."""
+
+    def delta(obs: np.ndarray) -> np.ndarray:
+        s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
+        with torch.no_grad():
+            target = torch.tanh(objective.intention.distribution_params(s)[0])
+            start = adversary(s).clamp(-0.999, 0.999)
+        raw = torch.atanh(start).requires_grad_(True)
+        optimizer = torch.optim.Adam([raw], lr=0.1)
+        for _ in range(steps):
+            loss = ((victim.act(objective.threat.perturb(s, torch.tanh(raw))) - target) ** 2).sum()
+            optimizer.zero_grad()
+            loss.backward(inputs=[raw])
+            optimizer.step()
+        with torch.no_grad():
+            final = torch.tanh(raw)
+            delta.gaps.append((victim.act(objective.threat.perturb(s, final)) - target).norm().item())
+        return final.squeeze(0).double().numpy()
+
+    delta.gaps = []  # the gap left at every observation
+    return delta
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="a RAT or intention run directory (its checkpoint)")
@@ -84,6 +113,11 @@ def main() -> None:
     parser.add_argument("--deterministic", action="store_true", help="train with Δ's mean (no exploration noise)")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--mean-reg", type=float, default=0.0, help="weight of a penalty on Δ's pre-tanh mean, squared")
+    parser.add_argument("--online-steps", type=int, default=0,
+                        help="also attack with Δ refined per observation by this many Adam steps towards π_θ's action")
+    parser.add_argument("--rounds", type=int, default=0, help="then add the attacked episodes' states and refit, K times")
+    parser.add_argument("--round-updates", type=int, default=5_000, help="updates after each round's states join")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
@@ -105,25 +139,61 @@ def main() -> None:
     adversary = Adversary(obs_all.shape[1])
     optimizer = torch.optim.Adam(adversary.parameters(), lr=args.lr)
     start = time.time()
-    for update in range(1, args.updates + 1):
-        obs = pool[torch.randint(0, len(pool), (args.batch,))]
-        noise = None if args.deterministic else torch.randn_like(obs)
-        loss = inner_loss(torch.ones(args.batch), objective.kl(adversary, None, obs, noise))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward(inputs=list(adversary.parameters()))
-        optimizer.step()
-        if update % max(1, args.updates // 5) == 0:
-            print(f"update {update}: loss {loss.item():.3f}, gap on held-out states {objective.gap(adversary, held):.3f} "
-                  f"({time.time() - start:.0f} s)", flush=True)
 
+    def fit(pool: torch.Tensor, updates: int) -> None:
+        for update in range(1, updates + 1):
+            obs = pool[torch.randint(0, len(pool), (args.batch,))]
+            noise = None if args.deterministic else torch.randn_like(obs)
+            loss = inner_loss(torch.ones(args.batch), objective.kl(adversary, None, obs, noise))
+            if args.mean_reg:
+                loss = loss + args.mean_reg * adversary.policy.distribution_params(obs)[0].pow(2).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward(inputs=list(adversary.parameters()))
+            optimizer.step()
+            if update % max(1, updates // 5) == 0:
+                with torch.no_grad():
+                    saturated = (adversary(held).abs() > 0.99).float().mean().item()
+                print(f"update {update}: loss {loss.item():.3f}, gap on held-out states "
+                      f"{objective.gap(adversary, held):.3f}, Δ saturated (|Δ_i| > 0.99) {saturated:.1%} "
+                      f"({time.time() - start:.0f} s)", flush=True)
+
+    fit(pool, args.updates)
     per_dim = ball_gap(victim, objective, held[:512])
     print(f"what the ball allows (Δ optimised per state, 512 states): gap {per_dim.norm(dim=-1).mean():.3f}, "
           f"per dimension {[round(float(x), 3) for x in per_dim.mean(0)]}")
     target = get_target(args.target)
     task = target.env_task(args.task or victim.meta["task"])
-    attack = evaluate_attack(victim, adversary_function(adversary), make_task(task, seed=1), target,
-                             objective.threat, args.episodes, 1000)
+    threat = objective.threat
+    attack = evaluate_attack(victim, adversary_function(adversary), make_task(task, seed=1), target, threat,
+                             args.episodes, 1000)
     print(f"attack success: {attack.result.success_rate:.1%} over {args.episodes} episodes")
+
+    if args.online_steps:
+        online = refined(victim, objective, adversary, args.online_steps)
+        attack = evaluate_attack(victim, online, make_task(task, seed=1), target, threat, args.episodes, 1000)
+        print(f"attack success with Δ refined per observation ({args.online_steps} Adam steps, gap left "
+              f"{np.mean(online.gaps):.3f}): {attack.result.success_rate:.1%} over {args.episodes} episodes", flush=True)
+
+    for k in range(1, args.rounds + 1):  # DAgger: the attacked victim's states join the pool
+        seen: list[np.ndarray] = []
+        delta = adversary_function(adversary)
+
+        def recording(obs: np.ndarray) -> np.ndarray:
+            seen.append(np.array(obs, dtype=np.float32))
+            return delta(obs)
+
+        # other episodes than the yardstick's (seed 1000)
+        evaluate_attack(victim, recording, make_task(task, seed=k), target, threat, args.episodes, 5000 + 100 * k)
+        visited = torch.as_tensor(np.stack(seen))
+        allowed = ball_gap(victim, objective, visited[torch.randperm(len(visited))[:512]]).norm(dim=-1).mean()
+        print(f"round {k}: gap on the attacked victim's states {objective.gap(adversary, visited):.3f} "
+              f"(the ball allows {allowed:.3f} there), on held-out ones {objective.gap(adversary, held):.3f}", flush=True)
+        pool = torch.cat([pool, visited])
+        fit(pool, args.round_updates)
+        attack = evaluate_attack(victim, adversary_function(adversary), make_task(task, seed=1), target, threat,
+                                 args.episodes, 1000)
+        print(f"round {k} ({len(pool)} states): attack success {attack.result.success_rate:.1%} "
+              f"over {args.episodes} episodes", flush=True)
 
     @torch.no_grad()
     def intention(obs: np.ndarray) -> np.ndarray:

@@ -8,7 +8,8 @@ from scipy import stats
 from point_env import HORIZON, PointGoal
 from rat.agents.networks import TanhGaussianActor, TwinCritic
 from rat.agents.sac import SAC, SACConfig
-from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss
+from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
+                               saturation)
 from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, weighting_update
 from rat.attacks.threat import NORMS, AttackedObservation, ThreatModel, perturbation_norm, project, random_delta
 from rat.errors import RatError
@@ -193,6 +194,15 @@ def test_inner_step_moves_only_the_adversary_and_never_the_victim(ablation):
     for b, m in zip(before[1:], (weighting, intention.actor, intention.critic, victim)):
         assert not changed(b, m)
         assert all(q.grad is None for q in m.parameters())
+
+
+def test_saturation_counts_the_components_of_delta_at_the_balls_edge():
+    torch.manual_seed(0)
+    adversary, obs = Adversary(4, hidden=16, layers=1), torch.randn(64, 4)
+    assert saturation(adversary, obs) < 0.05  # a fresh adversary is near the centre
+    with torch.no_grad():
+        adversary.policy.trunk[-1].bias[:2] += 50.0  # the means of two of four components, far past tanh's range
+    assert saturation(adversary, obs) == pytest.approx(0.5)
 
 
 def test_outer_step_moves_only_the_weighting_network():

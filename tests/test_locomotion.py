@@ -11,8 +11,9 @@ def cheetah(x=0.0, start=0.0, pitch=0.0, vx=0.0):
     return {"x_position": x, "start_x_position": start, "torso_pitch": pitch, "x_velocity": vx, "torso_z": 0.6}
 
 
-def walker(z=1.2, right=0.0, left=0.0, thigh=0.0, thigh_left=0.0):
-    return {"torso_z": z, "foot_z": right, "foot_left_z": left, "thigh_angle": thigh, "thigh_left_angle": thigh_left}
+def walker(z=1.2, right=0.0, left=0.0, thigh=0.0, thigh_left=0.0, vx=0.0):
+    return {"torso_z": z, "foot_z": right, "foot_left_z": left, "thigh_angle": thigh, "thigh_left_angle": thigh_left,
+            "x_velocity": vx}
 
 
 def held(target, infos):
@@ -51,7 +52,11 @@ def test_walker_targets():
     assert held("walker-one-foot", [walker(right=0.0, left=0.3)] * 20)[-1]
     assert not any(held("walker-one-foot", [walker(right=0.2, left=0.2)] * 30))  # both up: jumping
     assert not any(held("walker-one-foot", [walker(z=0.7, right=0.2)] * 30))  # fallen
-    assert held("walker-leg-raised", [walker(right=0.4, thigh=-0.9)] * 20)[-1]
+    assert not any(held("walker-one-foot", [walker(right=0.2, vx=1.2)] * 40))  # a walking gait's swing phase
+    one_foot = get_target("walker-one-foot").reward
+    assert one_foot(None, None, None, walker(right=0.2)) > one_foot(None, None, None, walker(right=0.2, vx=1.0))
+    assert held("walker-leg-raised", [walker(right=0.4, thigh=-0.9)] * 100)[-1]
+    assert not any(held("walker-leg-raised", [walker(right=0.4, thigh=-0.9)] * 99))  # a long swing is not a dance
     assert not any(held("walker-leg-raised", [walker(right=0.4, thigh=-0.3)] * 30))  # foot high, leg not forward
     assert not any(held("walker-leg-raised", [walker(right=0.2, thigh=-0.9)] * 30))  # leg forward, foot low
 

@@ -118,6 +118,9 @@ def test_imitating_the_best_intention_policy_keeps_it_scores_it_by_r_hat_and_che
     state, _ = load_checkpoint(tmp_path / "run" / "checkpoint")
     assert int(state["best"]["step"]) == int(float(rows[-1]["imitated_step"]))
     assert report.details["adversary_updates"] > 0
+    with open(tmp_path / "run" / "metrics.csv") as f:
+        saturated = [float(r["adversary_saturation"]) for r in csv.DictReader(f) if r.get("adversary_saturation")]
+    assert saturated and all(0.0 <= x <= 1.0 for x in saturated)  # logged after every adversary phase
     with pytest.raises(RatError, match="imitate must be current or best"):
         small_config(imitate="peak")
 

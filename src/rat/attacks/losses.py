@@ -41,6 +41,15 @@ class Adversary(nn.Module):
         return torch.tanh(mu + log_std.exp() * noise)
 
 
+@torch.no_grad()
+def saturation(adversary: Adversary, obs: torch.Tensor) -> float:
+    """The fraction of Δ's components at the ball's edge (|Δ_i| > 0.99), where tanh passes almost no gradient.
+
+    Near 1, the adversary is stuck at corners of the ball: its inner loss can no longer move it.
+    """
+    return (adversary(obs).abs() > 0.99).float().mean().item()
+
+
 class WeightingNetwork(nn.Module):
     """h_ω(s) ∈ (0, 2): an MLP d → 64 → 64 → 1 with ``1 + tanh`` output."""
 

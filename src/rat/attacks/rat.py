@@ -35,7 +35,7 @@ import torch
 from rat import seeds
 from rat.attacks.base import AttackSetup, register_attack
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
-from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss
+from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss, saturation
 from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
 from rat.device import resolve_device
@@ -287,6 +287,7 @@ class RATTrainer:
             for _ in range(cfg.adversary_updates):
                 self.metrics.update(self.adversary_step())  # inner level
             self.metrics["imitation_gap"] = self.objective().gap(self.adversary, *self.last_batch)  # after the phase
+            self.metrics["adversary_saturation"] = saturation(self.adversary, self.last_batch[0])
         if self.use_weighting and learner.reward_ready and learner.step % cfg.weighting_every == 0:
             self.metrics.update(self.weighting_step())  # outer level
         self.succeeded |= self.success_test(info)
