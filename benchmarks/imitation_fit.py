@@ -32,7 +32,7 @@ import torch
 from rat.agents.networks import TanhGaussianActor
 from rat.attacks.evaluation import evaluate_attack
 from rat.attacks.losses import Adversary, Imitation, inner_loss
-from rat.attacks.rat import adversary_function
+from rat.attacks.rat import adversary_function, refined_function
 from rat.attacks.threat import ThreatModel
 from rat.checkpoint import load_checkpoint
 from rat.envs import make_task
@@ -43,16 +43,12 @@ from rat.victims import load_victim
 from rat.victims.base import Victim
 
 
-def imitated_actor(state: dict, obs_dim: int, act_dim: int) -> TanhGaussianActor:
+def imitated_actor(state: dict) -> TanhGaussianActor:
     """π_θ as the run's adversary imitated it last: the kept copy (imitate=best), else the current actor."""
     agent = state["learner"]["agent"]
     weights = state["best"]["actor"] if "best" in state else {
         k.removeprefix("actor."): v for k, v in agent.items() if k.startswith("actor.")}
-    hidden = weights["trunk.0.weight"].shape[0]
-    layers = sum(1 for k in weights if k.endswith(".weight")) - 1
-    actor = TanhGaussianActor(obs_dim, act_dim, hidden, layers)
-    actor.load_state_dict(weights)
-    return actor.requires_grad_(False)
+    return TanhGaussianActor.from_state_dict(weights).requires_grad_(False)
 
 
 def ball_gap(victim: Victim, objective: Imitation, obs: torch.Tensor, steps: int = 200) -> torch.Tensor:
@@ -72,31 +68,6 @@ def ball_gap(victim: Victim, objective: Imitation, obs: torch.Tensor, steps: int
         optimizer.step()
     with torch.no_grad():
         return (victim.act(objective.threat.perturb(obs, torch.tanh(raw))) - target).abs()
-
-
-def refined(victim: Victim, objective: Imitation, adversary: Adversary, steps: int):
-    """A perturbation that starts at the adversary's Δ and runs ``steps`` Adam steps on Δ itself, per
-    observation, towards π_θ's action there: what the attack would do if its network fitted as well as the ball allows."""
-
-    def delta(obs: np.ndarray) -> np.ndarray:
-        s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
-        with torch.no_grad():
-            target = torch.tanh(objective.intention.distribution_params(s)[0])
-            start = adversary(s).clamp(-0.999, 0.999)
-        raw = torch.atanh(start).requires_grad_(True)
-        optimizer = torch.optim.Adam([raw], lr=0.1)
-        for _ in range(steps):
-            loss = ((victim.act(objective.threat.perturb(s, torch.tanh(raw))) - target) ** 2).sum()
-            optimizer.zero_grad()
-            loss.backward(inputs=[raw])
-            optimizer.step()
-        with torch.no_grad():
-            final = torch.tanh(raw)
-            delta.gaps.append((victim.act(objective.threat.perturb(s, final)) - target).norm().item())
-        return final.squeeze(0).double().numpy()
-
-    delta.gaps = []  # the gap left at every observation
-    return delta
 
 
 def main() -> None:
@@ -132,8 +103,7 @@ def main() -> None:
     obs_all = torch.as_tensor(state["learner"]["buffer"]["obs"]).float()
     pool = obs_all[-args.recent:]
     held = obs_all[torch.randint(max(0, len(obs_all) - 20_000), len(obs_all), (1024,))]
-    act_dim = victim.act(obs_all[:1]).shape[-1]
-    actor = imitated_actor(state, obs_all.shape[1], act_dim)
+    actor = imitated_actor(state)
     objective = Imitation(victim, actor, None, torch.tensor(0.0), ThreatModel(args.epsilon, "linf"))
 
     adversary = Adversary(obs_all.shape[1])
@@ -169,10 +139,11 @@ def main() -> None:
     print(f"attack success: {attack.result.success_rate:.1%} over {args.episodes} episodes")
 
     if args.online_steps:
-        online = refined(victim, objective, adversary, args.online_steps)
+        gaps: list[float] = []
+        online = refined_function(adversary, actor, victim, threat, args.online_steps, gaps=gaps)
         attack = evaluate_attack(victim, online, make_task(task, seed=1), target, threat, args.episodes, 1000)
         print(f"attack success with Δ refined per observation ({args.online_steps} Adam steps, gap left "
-              f"{np.mean(online.gaps):.3f}): {attack.result.success_rate:.1%} over {args.episodes} episodes", flush=True)
+              f"{np.mean(gaps):.3f}): {attack.result.success_rate:.1%} over {args.episodes} episodes", flush=True)
 
     for k in range(1, args.rounds + 1):  # DAgger: the attacked victim's states join the pool
         seen: list[np.ndarray] = []

@@ -10,7 +10,7 @@ from rat.agents.networks import TanhGaussianActor, TwinCritic
 from rat.agents.sac import SAC, SACConfig
 from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
                                saturation)
-from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, weighting_update
+from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, refined_function, weighting_update
 from rat.attacks.threat import NORMS, AttackedObservation, ThreatModel, perturbation_norm, project, random_delta
 from rat.errors import RatError
 from rat.victims import ModuleVictim
@@ -205,6 +205,36 @@ def test_saturation_counts_the_components_of_delta_at_the_balls_edge():
     assert saturation(adversary, obs) == pytest.approx(0.5)
 
 
+def test_refinement_narrows_each_states_imitation_gap_inside_the_ball_and_never_changes_the_victim():
+    victim, intention, adversary, _, _, _ = isolation_setup()
+    threat = ThreatModel(1.0)  # a ball wide enough to move this small victim's action
+    before = snapshot(victim)
+    obs = np.random.default_rng(0).normal(size=(40, 4))
+    network, refined = [], []
+    for o in obs:  # each state on its own (no warm start from another): the network's Δ, then 30 steps from it
+        refined_function(adversary, intention.actor, victim, threat, 0, gaps=network)(o)
+        delta = refined_function(adversary, intention.actor, victim, threat, 30, gaps=refined)(o)
+        assert np.abs(delta).max() < 1.0  # through tanh: inside the ball
+    network, refined = np.array(network), np.array(refined)
+    assert (refined <= network + 1e-6).all()  # the best Δ seen, so never worse than where it starts
+    assert refined.mean() < 0.7 * network.mean(), (refined.mean(), network.mean())
+    assert stats.wilcoxon(network, refined, alternative="greater").pvalue < 1e-3
+    with torch.no_grad():
+        start = adversary(torch.as_tensor(obs[:1], dtype=torch.float32)).squeeze(0).numpy()
+    np.testing.assert_allclose(refined_function(adversary, intention.actor, victim, threat, 0)(obs[0]), start,
+                               atol=1e-3)  # no steps: the network's Δ
+    assert not changed(before[0], victim) and all(p.grad is None for p in victim.parameters())
+
+
+def test_refinement_starts_from_the_previous_observations_delta_when_that_fits_better():
+    victim, intention, adversary, _, _, _ = isolation_setup()
+    obs, gaps = np.random.default_rng(1).normal(size=4), []
+    refine = refined_function(adversary, intention.actor, victim, ThreatModel(1.0), 5, gaps=gaps)
+    for _ in range(4):  # the same state again: each call goes on from where the last one ended
+        refine(obs)
+    assert gaps[3] < gaps[0] and all(b <= a + 1e-6 for a, b in zip(gaps, gaps[1:])), gaps
+
+
 def test_outer_step_moves_only_the_weighting_network():
     victim, intention, adversary, weighting, cfg, obs = isolation_setup()
     before = snapshot(adversary, weighting, intention.actor, intention.critic)
@@ -245,6 +275,10 @@ def test_bad_attack_settings():
         RATConfig(epsilon=-1)
     with pytest.raises(RatError, match="unknown ablation"):
         RATConfig(ablation="no-everything")
+    with pytest.raises(RatError, match="refine-steps must be"):
+        RATConfig(refine_steps=-1)
+    with pytest.raises(RatError, match="no-intention ablation"):
+        RATConfig(refine_steps=10, ablation="no-intention")
 
 
 class _GoalXReward:

@@ -155,6 +155,9 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     result = __import__("json").loads(out)
     assert result["within_budget"] and result["task"] == "drawer-open-v3" and result["target"] == "reach"
     assert result["clean_target_success_rate"] == 0.0  # the clean victim opens the drawer; it never reaches the goal
+    code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "1", "--refine-steps", "3",
+                         "--json")  # Δ refined towards the saved π_θ at every observation
+    assert code == 0 and __import__("json").loads(out)["within_budget"], err
 
     from rat.experiments.runner import film_attack
 
@@ -218,6 +221,8 @@ def test_a_baseline_from_the_cli_then_attack_eval(capsys, tmp_path):
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "random"), "--episodes", "2", "--json")
     result = __import__("json").loads(out)
     assert code == 0 and result["method"] == "random" and result["task"] == "drawer-close-v3" and result["within_budget"]
+    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-steps", "5")[::2],
+                      "drop --refine-steps")
 
 
 def test_baseline_and_grid_bad_inputs(capsys, tmp_path):

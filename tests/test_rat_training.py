@@ -125,6 +125,28 @@ def test_imitating_the_best_intention_policy_keeps_it_scores_it_by_r_hat_and_che
         small_config(imitate="peak")
 
 
+@pytest.mark.slow
+def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_networks_attack_beside(tmp_path):
+    from rat.attacks.rat import adversary_function, load_adversary, load_rat_attack
+    from rat.checkpoint import save_checkpoint
+
+    report = train_rat(small_config(1000, refine_steps=10), setup(), tmp_path / "run")
+    assert 0.0 <= report.details["network_attack_success_rate"] <= 1.0 and "network's Δ alone" in report.summary()
+    assert report.max_perturbation <= 0.1 + 1e-9
+    state, meta = load_checkpoint(tmp_path / "run" / "adversary")
+    assert meta["rat"]["refine_steps"] == 10 and set(state["intention"]) >= {"trunk.0.weight"}
+    victim, obs = point_victim(), np.array([0.1, 0.0, 0.15, 0.02])  # the victim's action not clamped here
+    network = load_rat_attack(tmp_path / "run", victim, refine_steps=0)
+    adversary, _ = load_adversary(tmp_path / "run")
+    np.testing.assert_allclose(network(obs), adversary_function(adversary)(obs))  # 0 steps: the network's Δ
+    assert not np.allclose(load_rat_attack(tmp_path / "run", victim)(obs), network(obs))  # as configured: refined
+    # an adversary saved without π_θ (by an older version) still attacks, but cannot be refined, and says what to do
+    save_checkpoint(tmp_path / "run" / "adversary", "adversary", {"adversary": state["adversary"]}, meta)
+    np.testing.assert_allclose(load_rat_attack(tmp_path / "run", victim, refine_steps=0)(obs), network(obs))
+    with pytest.raises(RatError, match="did not save the intention policy"):
+        load_rat_attack(tmp_path / "run", victim)
+
+
 def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_the_live_intention_policy():
     from dataclasses import replace
 

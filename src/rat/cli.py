@@ -580,8 +580,11 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
 @click.option("--video", type=click.Path(path_type=Path), default=None, help="record the first two attacked episodes")
 @click.option("--record", type=click.Path(path_type=Path), default=None,
               help="write every perturbation's size to this CSV (episode, step, norm, epsilon, within_budget)")
+@click.option("--refine-steps", type=int, default=None,
+              help="RAT only: Adam steps on Δ per observation towards the intention policy's action "
+                   "(0: the adversary network's Δ alone) [the run's refine_steps]")
 @click.option("--json", "as_json", is_flag=True)
-def attack_eval(run, episodes, seed, video, record, as_json) -> None:
+def attack_eval(run, episodes, seed, video, record, refine_steps, as_json) -> None:
     """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
     from rat.experiments.runner import evaluate_saved_attack
     from rat.runs import check_writable_file
@@ -591,7 +594,7 @@ def attack_eval(run, episodes, seed, video, record, as_json) -> None:
     for path, what in ((video, "--video"), (record, "--record")):
         if path is not None:
             check_writable_file(path, what)
-    r = evaluate_saved_attack(run, episodes, seed, video)
+    r = evaluate_saved_attack(run, episodes, seed, video, refine_steps=refine_steps)
     attacked, clean = r["attack"], r["clean"]
     if record is not None:
         attacked.write_records(record)

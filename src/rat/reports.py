@@ -97,6 +97,8 @@ class AttackReport(_Report):
         text = (f"attack success: {100 * self.attack_success_rate:.1f}% (95% CI {100 * lo:.1f}-{100 * hi:.1f}%, "
                 f"{self.episodes} episodes), {self.labels} labels, {self.steps} steps; "
                 f"max perturbation {self.max_perturbation:.4f} <= epsilon {self.epsilon:g} ({self.norm})")
+        if (network := (self.details or {}).get("network_attack_success_rate")) is not None:
+            text += f"; Δ refined at every observation (the adversary network's Δ alone: {100 * network:.1f}%)"
         if self.clean_success_rate is None:
             return text
         text += f"; the clean victim: {100 * self.clean_success_rate:.1f}%"

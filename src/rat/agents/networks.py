@@ -35,6 +35,15 @@ class TanhGaussianActor(nn.Module):
         self.log_std_bounds = log_std_bounds
         self.obs_dim, self.act_dim = obs_dim, act_dim
 
+    @classmethod
+    def from_state_dict(cls, weights: dict[str, torch.Tensor]) -> "TanhGaussianActor":
+        """An actor of the shape ``weights`` have (as :meth:`state_dict` gave them), loaded with them."""
+        linear = sorted((k for k in weights if k.endswith(".weight")), key=lambda k: int(k.split(".")[1]))
+        first, last = weights[linear[0]], weights[linear[-1]]
+        actor = cls(first.shape[1], last.shape[0] // 2, first.shape[0], len(linear) - 1)
+        actor.load_state_dict(weights)
+        return actor
+
     def distribution_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pre-tanh mean and log-std, shape ``[B, act_dim]`` each."""
         mu, log_std = self.trunk(obs).chunk(2, dim=-1)

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from rat import seeds
+from rat.agents.networks import TanhGaussianActor
 from rat.attacks.base import AttackSetup, register_attack
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
 from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss, saturation
@@ -82,6 +83,8 @@ class RATConfig:
     imitate: str = "current"  #: the adversary imitates the "current" π_θ (the paper's), or the "best" so far under r̂
     imitate_episodes: int = 3  #: π_θ's episodes per evaluation that score it under r̂ (imitate="best")
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
+    refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
+    refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
@@ -98,6 +101,11 @@ class RATConfig:
             raise RatError("select=reward scores snapshots with r̂, which an oracle run does not learn; use select=last")
         if self.kl_form not in ("exact", "released") or self.hypergradient not in ("exact", "batch-mean"):
             raise RatError("kl-form must be exact or released, hypergradient exact or batch-mean")
+        if self.refine_steps < 0 or self.refine_lr <= 0:
+            raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
+        if self.refine_steps and self.ablation == "no-intention":
+            raise RatError("refine-steps refines Δ towards π_θ, which the no-intention ablation does not imitate; "
+                           "drop one of the two")
         for name in ("total_steps", "adversary_every", "adversary_updates", "adversary_batch", "weighting_every",
                      "eval_every", "eval_episodes", "final_eval_episodes", "checkpoint_every"):
             if getattr(self, name) <= 0:
@@ -137,6 +145,49 @@ def adversary_function(adversary: Adversary) -> Perturbation:
     def delta(obs: np.ndarray) -> np.ndarray:
         s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
         return adversary(s).squeeze(0).double().cpu().numpy()
+
+    return delta
+
+
+def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
+                     steps: int, lr: float = 0.1, gaps: list[float] | None = None) -> Perturbation:
+    """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §9).
+
+    From the network's Δ, ``steps`` Adam steps on Δ itself (through tanh, so Δ stays in (−1, 1)^d and
+    the perturbation in the ball) minimise this one state's imitation gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖²;
+    the Δ with the smallest gap seen is used. The steps start from the network's Δ or from the Δ
+    chosen at the previous observation, whichever leaves the smaller gap here (consecutive states are
+    close). It needs what training already does — the victim's gradient and π_θ — and costs ``steps``
+    forward and backward passes of the victim per observation. Memoryless victims only (a sequence
+    victim's context is not passed). ``gaps``, if given, receives the gap left at each observation.
+    """
+    device = next(adversary.parameters()).device
+    previous: list[torch.Tensor] = []  # the last Δ chosen, before tanh
+
+    def gap_of(s: torch.Tensor, raw: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return (victim.act(threat.perturb(s, torch.tanh(raw))) - target).pow(2).sum()
+
+    def delta(obs: np.ndarray) -> np.ndarray:
+        s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
+        with torch.no_grad():
+            target = torch.tanh(intention.distribution_params(s)[0])
+            starts = [torch.atanh(adversary(s).clamp(-0.999, 0.999))] + previous
+            raw = min(starts, key=lambda r: gap_of(s, r, target).item()).clone()
+        raw.requires_grad_(True)
+        optimizer = torch.optim.Adam([raw], lr=lr)
+        best, best_gap = raw.detach().clone(), float("inf")
+        for step in range(steps + 1):  # the last pass only scores the last step
+            gap = gap_of(s, raw, target)
+            if gap.item() < best_gap:
+                best, best_gap = raw.detach().clone(), gap.item()
+            if step < steps:
+                optimizer.zero_grad(set_to_none=True)
+                gap.backward(inputs=[raw])
+                optimizer.step()
+        if gaps is not None:
+            gaps.append(best_gap ** 0.5)
+        previous[:] = [best]
+        return torch.tanh(best).squeeze(0).double().cpu().numpy()
 
     return delta
 
@@ -321,11 +372,19 @@ class RATTrainer:
 
     # --- evaluation and state ----------------------------------------------------------------------
 
-    def evaluate_attack(self, episodes: int, seed: int, video=None) -> AttackEval:
+    def attack(self, refine: bool = False) -> Perturbation:
+        """The attack as deployed: the adversary's Δ, refined towards π_θ if ``refine`` and ``refine_steps`` say so."""
         cfg = self.config
-        return evaluate_attack(self.victim, adversary_function(self.adversary),
-                               self.setup.make_env(cfg.seed + seeds.EVAL_ENV), self.target, cfg.threat, episodes, seed,
-                               video=video)
+        if refine and cfg.refine_steps:
+            return refined_function(self.adversary, self.objective().intention, self.victim, cfg.threat,
+                                    cfg.refine_steps, cfg.refine_lr)
+        return adversary_function(self.adversary)
+
+    def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False) -> AttackEval:
+        """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``)."""
+        cfg = self.config
+        return evaluate_attack(self.victim, self.attack(refine), self.setup.make_env(cfg.seed + seeds.EVAL_ENV),
+                               self.target, cfg.threat, episodes, seed, video=video)
 
     def evaluate(self) -> dict[str, float]:
         """The attack now, and a snapshot of the adversary (for selection by r̂)."""
@@ -376,6 +435,9 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     cfg = replace(cfg, horizon=cfg.horizon or episode_length(env))  # recorded as used
     task = setup.describe.get("task")
     check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
+    if cfg.refine_steps and is_sequence(setup.victim):
+        raise RatError("refine-steps works on memoryless victims only (it does not pass a sequence victim's context); "
+                       "leave refine_steps at 0 for this victim")
     run = Run(out, {"rat": to_jsonable(cfg), **setup.describe}, tensorboard)
     store = LabelStore(run.dir / "labels.sqlite")
     trainer = RATTrainer(cfg, setup, env, store, run.dir.name, run.dir / "snapshots", setup.labeller)
@@ -388,19 +450,25 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     adversary = trainer.adversary
     meta = {"rat": to_jsonable(cfg), **setup.describe, "target": target.name, "obs_dim": adversary.obs_dim,
             "adversary_hidden": cfg.adversary_hidden, "method": "rat"}
+    # π_θ as the adversary imitated it last, saved beside it: refinement (refine_steps) aims at its actions
+    intention = {"intention": trainer.objective().intention.state_dict()}
     details: dict = {"ablation": cfg.ablation, "queries_asked": trainer.learner.asked, **trainer.counters}
     if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
-        save_checkpoint(run.dir / "adversary-last", "adversary", {"adversary": adversary.state_dict()}, meta)
-        last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL)
+        save_checkpoint(run.dir / "adversary-last", "adversary", {"adversary": adversary.state_dict(), **intention},
+                        meta)
+        last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True)
         details.update(select_by_learned_reward(trainer.snapshots, adversary, trainer.victim, trainer.learner.ensemble,
                                                 setup.make_env(cfg.seed + seeds.SELECTION_ENV), cfg))
         details["last_attack_success_rate"] = last.result.success_rate
-    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL)
+    if cfg.refine_steps:  # the network's Δ alone, beside the refined attack
+        details["network_attack_success_rate"] = trainer.evaluate_attack(
+            cfg.final_eval_episodes, seeds.FINAL).result.success_rate
+    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True)
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
     clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
                            seeds.FINAL)
-    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict()},
+    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(), **intention},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
@@ -466,6 +534,12 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
 
 def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
     """An adversary saved by :func:`train_rat` (``<run>/adversary``), with its metadata."""
+    adversary, _, meta = _load_saved(path)
+    return adversary, meta
+
+
+def _load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, dict]:
+    """The adversary of ``<run>/adversary``, the π_θ it imitated (None if the run predates saving it), metadata."""
     path = Path(path)
     if path.is_dir():
         path = path / "adversary"
@@ -473,7 +547,28 @@ def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
     adversary = Adversary(int(meta["obs_dim"]), int(meta["adversary_hidden"]))
     adversary.load_state_dict(state["adversary"])
     adversary.eval().requires_grad_(False)
-    return adversary, meta
+    intention = TanhGaussianActor.from_state_dict(state["intention"]).requires_grad_(False) \
+        if "intention" in state else None
+    return adversary, intention, meta
+
+
+def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None) -> Perturbation:
+    """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
+    Adam steps per observation (None: as the run was configured; 0: the network's Δ alone)."""
+    adversary, intention, meta = _load_saved(run)
+    cfg = meta.get("rat", {})
+    steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
+    if steps < 0:
+        raise RatError(f"refine-steps must be ≥ 0, got {steps}")
+    if not steps:
+        return adversary_function(adversary)
+    if intention is None:
+        raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
+                       "run its `rat attack train` command again to rewrite it, or evaluate without refinement")
+    if is_sequence(victim):
+        raise RatError("refine-steps works on memoryless victims only; evaluate this attack without refinement")
+    return refined_function(adversary, intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
+                            cfg.get("refine_lr", 0.1))
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))
@@ -493,4 +588,4 @@ class RAT:
                        pebble=replace(config.pebble, oracle=oracle), **scored)
 
     def load(self, run: Path, meta: dict, victim: Victim) -> Perturbation:
-        return adversary_function(load_adversary(run)[0])
+        return load_rat_attack(run, victim)

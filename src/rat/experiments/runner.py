@@ -10,6 +10,7 @@ from pathlib import Path
 
 from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta
 from rat.attacks.evaluation import evaluate_attack, evaluate_clean
+from rat.attacks.rat import load_rat_attack
 from rat.attacks.threat import ThreatModel
 from rat.envs import check_task, get_target, make_task
 from rat.envs.targets import TargetBehaviour
@@ -57,14 +58,22 @@ def train_attack(method: str, setup: AttackSetup, config, out: str | Path) -> At
 
 
 def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
-                          progress: bool = True, video_episodes=2) -> dict:
-    """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim."""
+                          progress: bool = True, video_episodes=2, refine_steps: int | None = None) -> dict:
+    """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim.
+
+    ``refine_steps`` (RAT only) overrides the run's refinement of Δ towards π_θ (0: the network's Δ alone).
+    """
     meta = saved_attack_meta(run)
     if "victim" not in meta or "task" not in meta:
         raise RatError(f"the attack in '{run}' does not record its victim and task (trained from Python with a "
                        "victim object, or its adversary.json was edited); evaluate it with rat.attacks.evaluate_attack")
+    if refine_steps is not None and meta.get("method", "rat") != "rat":
+        raise RatError(f"--refine-steps refines a RAT adversary towards its intention policy; '{run}' is a "
+                       f"{meta['method']} attack: drop --refine-steps")
     victim = load_victim(meta["victim"])
     perturbation, meta = load_attack(run, victim)
+    if refine_steps is not None:
+        perturbation = load_rat_attack(run, victim, refine_steps)
     target = get_target(meta["target"])
     cfg = meta.get("rat", meta)  # RAT keeps its budget in its config, the baselines at the top level
     threat = ThreatModel(cfg["epsilon"], cfg["norm"])

@@ -168,6 +168,7 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "train_minutes": report.train_minutes,  # every session's, where the cell resumed
            "victim": setup.victim.name, "victim_method": setup.victim.meta.get("method", "?"),
            "last_attack_success_rate": report.details.get("last_attack_success_rate", report.attack_success_rate),
+           "network_attack_success_rate": report.details.get("network_attack_success_rate"),  # when Δ is refined
            "clean_success_rate": report.clean_success_rate}
     tmp = directory / "result.json.tmp"
     tmp.write_text(json.dumps(row, indent=1))
@@ -302,7 +303,7 @@ def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
     """``results.csv``, ``table1.md`` and ``curves-<task>.png`` from the finished cells."""
     fields = ["task", "scenario", "method", "seed", "attack_success_rate", "ci_low", "ci_high", "episodes", "labels",
               "max_perturbation", "epsilon", "norm", "preset", "minutes", "train_minutes", "victim", "victim_method",
-              "last_attack_success_rate", "clean_success_rate"]
+              "last_attack_success_rate", "network_attack_success_rate", "clean_success_rate"]
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")
         writer.writeheader()
