@@ -135,6 +135,16 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     assert report.max_perturbation <= 0.1 + 1e-9
     state, meta = load_checkpoint(tmp_path / "run" / "adversary")
     assert meta["rat"]["refine_steps"] == 10 and set(state["intention"]) >= {"trunk.0.weight"}
+    # a run written before a setting existed resumes while that setting is at its default, and only then
+    config_path = tmp_path / "run" / "config.json"
+    saved = __import__("json").loads(config_path.read_text())
+    del saved["rat"]["refine_lr"]  # default now
+    config_path.write_text(__import__("json").dumps(saved))
+    assert train_rat(small_config(1000, refine_steps=10), setup(), tmp_path / "run").steps == 1000
+    del saved["rat"]["refine_steps"]  # 10 now, not the default
+    config_path.write_text(__import__("json").dumps(saved))
+    with pytest.raises(RatError, match="refine_steps"):
+        train_rat(small_config(1000, refine_steps=10), setup(), tmp_path / "run")
     victim, obs = point_victim(), np.array([0.1, 0.0, 0.15, 0.02])  # the victim's action not clamped here
     network = load_rat_attack(tmp_path / "run", victim, refine_steps=0)
     adversary, _ = load_adversary(tmp_path / "run")

@@ -438,7 +438,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     if cfg.refine_steps and is_sequence(setup.victim):
         raise RatError("refine-steps works on memoryless victims only (it does not pass a sequence victim's context); "
                        "leave refine_steps at 0 for this victim")
-    run = Run(out, {"rat": to_jsonable(cfg), **setup.describe}, tensorboard)
+    run = Run(out, {"rat": cfg, **setup.describe}, tensorboard)  # the dataclass: a later setting at its default resumes
     store = LabelStore(run.dir / "labels.sqlite")
     trainer = RATTrainer(cfg, setup, env, store, run.dir.name, run.dir / "snapshots", setup.labeller)
     loop = TrainingLoop(run, trainer, cfg.total_steps, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every,

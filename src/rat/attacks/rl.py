@@ -36,7 +36,7 @@ from rat.loop import TrainingLoop
 from rat.preferences.offline import learn_reward, reward_source
 from rat.preferences.reward_model import RewardModelConfig
 from rat.reports import AttackReport
-from rat.runs import Run, to_jsonable
+from rat.runs import Run
 from rat.victims.base import Victim, VictimPolicy, check_compatible, require_memoryless
 
 
@@ -318,7 +318,7 @@ class PPOAttack:
             details["steps"] = trainer.step
             return {"policy": trainer.model.policy.state_dict()}, details
 
-        return baseline_run(self.name, setup, out, {"ppo": to_jsonable(config)}, train, prepare,
+        return baseline_run(self.name, setup, out, {"ppo": config}, train, prepare,
                             config.final_eval_episodes)
 
     def load(self, run: Path, meta: dict, victim: Victim) -> Perturbation:

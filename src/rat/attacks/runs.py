@@ -20,7 +20,7 @@ from rat.attacks.threat import Perturbation
 from rat.checkpoint import save_checkpoint
 from rat.loop import write_report
 from rat.reports import AttackReport
-from rat.runs import Run, seed_everything
+from rat.runs import Run, seed_everything, to_jsonable
 from rat.victims.base import check_compatible
 
 ADVERSARY_KIND = "baseline-adversary"
@@ -33,7 +33,8 @@ def baseline_run(method: str, setup: AttackSetup, out: str | Path, config: dict[
 
     Args:
         method: the attack's registry name.
-        config: the method's JSON-able settings, saved in ``config.json`` and the attack's metadata.
+        config: the method's settings (JSON-able values or dataclasses, whose defaults let a run written
+            before a setting existed resume), saved in ``config.json`` and the attack's metadata.
         prepare: ``env -> prepared``: work on the inputs before the run directory exists (so a
             mistake leaves nothing behind), e.g. learning r̂ from a label store.
         train: ``(run, env, prepared) -> (state, details)``: trains in the run and returns the
@@ -54,7 +55,7 @@ def baseline_run(method: str, setup: AttackSetup, out: str | Path, config: dict[
     details: dict[str, Any] = {}
     run = Run(out, settings)
     seed_everything(seed)
-    meta = {**settings, "obs_dim": env.observation_space.shape[0], "act_dim": env.action_space.shape[0]}
+    meta = {**to_jsonable(settings), "obs_dim": env.observation_space.shape[0], "act_dim": env.action_space.shape[0]}
     state: dict = {}
     if train is not None:
         state, trained = train(run, env, prepared)
