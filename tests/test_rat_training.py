@@ -150,6 +150,16 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     adversary, _ = load_adversary(tmp_path / "run")
     np.testing.assert_allclose(network(obs), adversary_function(adversary)(obs))  # 0 steps: the network's Δ
     assert not np.allclose(load_rat_attack(tmp_path / "run", victim)(obs), network(obs))  # as configured: refined
+    # a run's other saved adversary loads as itself, not as the run's kept one
+    from rat.attacks.base import load_attack
+
+    other = {k: v + 0.5 for k, v in state["adversary"].items()}
+    save_checkpoint(tmp_path / "run" / "adversary-last", "adversary", {"adversary": other,
+                                                                        "intention": state["intention"]}, meta)
+    last, _ = load_attack(tmp_path / "run" / "adversary-last.json", victim)
+    np.testing.assert_allclose(last(obs), load_rat_attack(tmp_path / "run" / "adversary-last", victim)(obs))
+    assert not np.allclose(load_attack(tmp_path / "run" / "adversary-last", victim)[0](obs),
+                           load_attack(tmp_path / "run", victim)[0](obs))
     # an adversary saved without π_θ (by an older version) still attacks, but cannot be refined, and says what to do
     save_checkpoint(tmp_path / "run" / "adversary", "adversary", {"adversary": state["adversary"]}, meta)
     np.testing.assert_allclose(load_rat_attack(tmp_path / "run", victim, refine_steps=0)(obs), network(obs))

@@ -160,8 +160,21 @@ def saved_attack_meta(run: str | Path) -> dict[str, Any]:
 
 
 def load_attack(run: str | Path, victim: Victim) -> tuple[Perturbation, dict[str, Any]]:
-    """Any saved attack as ``obs -> Δ``, with its metadata (runs written before the registry load too)."""
+    """Any saved attack as ``obs -> Δ``, with its metadata (runs written before the registry load too).
+
+    ``run`` is a run directory or one saved attack in it, such as a RAT run's ``adversary-last``.
+    """
     meta = saved_attack_meta(run)
-    attack = get_attack(meta.get("method", "rat"))
+    method = meta.get("method", "rat")
+    attack = get_attack(method)
     path = Path(run)
-    return attack.load(path if path.is_dir() else path.parent, meta, victim), meta
+    if path.is_dir():
+        return attack.load(path, meta, victim), meta
+    path = path.with_suffix("") if path.suffix in (".json", ".safetensors") else path
+    if path.name == "adversary":
+        return attack.load(path.parent, meta, victim), meta
+    if method != "rat":
+        raise RatError(f"a {method} run saves one attack, '{path.parent}/adversary'; evaluate the run directory")
+    from rat.attacks.rat import load_rat_attack  # RAT keeps more than one (adversary-last)
+
+    return load_rat_attack(path, victim), meta
