@@ -195,6 +195,10 @@ def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_v
     victim = load_decision_transformer(tmp_path / "dt")
     before = {k: v.clone() for k, v in victim.state_dict().items()}
     cfg = replace(small_config(700), weighting_every=100, horizon=None)  # H: the environment's time limit
+    with pytest.raises(RatError, match="memoryless victims only"):  # refinement passes no context
+        train_rat(replace(cfg, refine_steps=5), AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False),
+                  tmp_path / "refined")
+    assert not (tmp_path / "refined").exists()
     report = train_rat(cfg, AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False), tmp_path / "run")
     assert report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
     assert report.max_perturbation <= 0.1 + 1e-9

@@ -151,7 +151,7 @@ def adversary_function(adversary: Adversary) -> Perturbation:
 
 def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
                      steps: int, lr: float = 0.1, gaps: list[float] | None = None) -> Perturbation:
-    """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §9).
+    """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §10).
 
     From the network's Δ, ``steps`` Adam steps on Δ itself (through tanh, so Δ stays in (−1, 1)^d and
     the perturbation in the ball) minimise this one state's imitation gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖²;
@@ -534,12 +534,13 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
 
 def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
     """An adversary saved by :func:`train_rat` (``<run>/adversary``), with its metadata."""
-    adversary, _, meta = _load_saved(path)
+    adversary, _, meta = load_saved(path)
     return adversary, meta
 
 
-def _load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, dict]:
-    """The adversary of ``<run>/adversary``, the π_θ it imitated (None if the run predates saving it), metadata."""
+def load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, dict]:
+    """The adversary of ``<run>/adversary`` (or of another saved adversary file), the π_θ it imitated
+    (None if the run predates saving it) and the metadata."""
     path = Path(path)
     if path.is_dir():
         path = path / "adversary"
@@ -555,7 +556,7 @@ def _load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, 
 def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None) -> Perturbation:
     """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
     Adam steps per observation (None: as the run was configured; 0: the network's Δ alone)."""
-    adversary, intention, meta = _load_saved(run)
+    adversary, intention, meta = load_saved(run)
     cfg = meta.get("rat", {})
     steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
     if steps < 0:
@@ -568,7 +569,7 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if is_sequence(victim):
         raise RatError("refine-steps works on memoryless victims only; evaluate this attack without refinement")
     return refined_function(adversary, intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
-                            cfg.get("refine_lr", 0.1))
+                            cfg.get("refine_lr", RATConfig.refine_lr))
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))

@@ -71,8 +71,9 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
         raise RatError(f"--refine-steps refines a RAT adversary towards its intention policy; '{run}' is a "
                        f"{meta['method']} attack: drop --refine-steps")
     victim = load_victim(meta["victim"])
-    perturbation, meta = load_attack(run, victim)
-    if refine_steps is not None:
+    if refine_steps is None:
+        perturbation, meta = load_attack(run, victim)
+    else:
         perturbation = load_rat_attack(run, victim, refine_steps)
     target = get_target(meta["target"])
     cfg = meta.get("rat", meta)  # RAT keeps its budget in its config, the baselines at the top level
