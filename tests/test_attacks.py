@@ -303,8 +303,9 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
             last.weight.zero_()
             last.bias.zero_()
             last.bias[2] = 3.0 * (i - 1)  # the mean of Δ for the observed goal's x
+        pi_theta = {"trunk.0.weight": torch.full((8, 4), float(i))}  # the π_θ each snapshot imitated
         save_checkpoint(tmp_path / f"adversary-{1000 * (i + 1)}", "adversary-snapshot",
-                        {"adversary": snap.state_dict()}, {"step": 1000 * (i + 1)})
+                        {"adversary": snap.state_dict(), "intention": pi_theta}, {"step": 1000 * (i + 1)})
     current = Adversary(4, 16)  # the adversary at the end of training: another candidate ("last")
     scores = [learned_return(victim, a, PointGoal(3), reward, cfg.threat, 3, seed=3 * 10**7) for a in snapshots + [current]]
     expected = [a.state_dict() for a in snapshots + [current]][int(np.argmax(scores))]
@@ -315,6 +316,7 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
     assert all(torch.equal(a, b) for a, b in zip(current.state_dict().values(), expected.values()))
     assert max(result["learned_returns"].values()) == pytest.approx(max(scores), abs=1e-3)
     assert len(set(round(x, 6) for x in scores)) == 4 and best == 2  # they differ; shifting the goal right wins
+    assert torch.equal(result["intention"]["trunk.0.weight"], torch.full((8, 4), 2.0))  # refine towards its own π_θ
     with pytest.raises(RatError, match="oracle"):
         from rat.preferences.pebble import PebbleConfig
         RATConfig(select="reward", pebble=PebbleConfig(oracle=True))

@@ -130,21 +130,29 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     from rat.attacks.rat import adversary_function, load_adversary, load_rat_attack
     from rat.checkpoint import save_checkpoint
 
-    report = train_rat(small_config(1000, refine_steps=10), setup(), tmp_path / "run")
+    report = train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run")
     assert 0.0 <= report.details["network_attack_success_rate"] <= 1.0 and "network's Δ alone" in report.summary()
     assert report.max_perturbation <= 0.1 + 1e-9
     state, meta = load_checkpoint(tmp_path / "run" / "adversary")
     assert meta["rat"]["refine_steps"] == 10 and set(state["intention"]) >= {"trunk.0.weight"}
+    # the kept adversary is saved with the π_θ it imitated: a snapshot's own, or the last one's
+    step = report.details["selected_step"]
+    imitated = load_checkpoint(tmp_path / "run" / ("snapshots/adversary-%d" % step if step < 1000 else "adversary-last"))[0]
+    assert all(torch.equal(state["intention"][k], imitated["intention"][k]) for k in state["intention"])
+    assert torch.equal(state["adversary"]["policy.trunk.0.weight"], imitated["adversary"]["policy.trunk.0.weight"])
+    pi_500, pi_1000 = (load_checkpoint(tmp_path / "run" / "snapshots" / f"adversary-{n}")[0]["intention"]
+                       for n in (500, 1000))
+    assert not torch.equal(pi_500["trunk.0.weight"], pi_1000["trunk.0.weight"])  # each snapshot holds its own
     # a run written before a setting existed resumes while that setting is at its default, and only then
     config_path = tmp_path / "run" / "config.json"
     saved = __import__("json").loads(config_path.read_text())
     del saved["rat"]["refine_lr"]  # default now
     config_path.write_text(__import__("json").dumps(saved))
-    assert train_rat(small_config(1000, refine_steps=10), setup(), tmp_path / "run").steps == 1000
+    assert train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run").steps == 1000
     del saved["rat"]["refine_steps"]  # 10 now, not the default
     config_path.write_text(__import__("json").dumps(saved))
     with pytest.raises(RatError, match="refine_steps"):
-        train_rat(small_config(1000, refine_steps=10), setup(), tmp_path / "run")
+        train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run")
     victim, obs = point_victim(), np.array([0.1, 0.0, 0.15, 0.02])  # the victim's action not clamped here
     network = load_rat_attack(tmp_path / "run", victim, refine_steps=0)
     adversary, _ = load_adversary(tmp_path / "run")

@@ -372,25 +372,29 @@ class RATTrainer:
 
     # --- evaluation and state ----------------------------------------------------------------------
 
-    def attack(self, refine: bool = False) -> Perturbation:
-        """The attack as deployed: the adversary's Δ, refined towards π_θ if ``refine`` and ``refine_steps`` say so."""
+    def attack(self, refine: bool = False, intention: TanhGaussianActor | None = None) -> Perturbation:
+        """The attack as deployed: the adversary's Δ, refined towards π_θ (``intention``, else the one imitated
+        now) if ``refine`` and ``refine_steps`` say so."""
         cfg = self.config
         if refine and cfg.refine_steps:
-            return refined_function(self.adversary, self.objective().intention, self.victim, cfg.threat,
+            return refined_function(self.adversary, intention or self.objective().intention, self.victim, cfg.threat,
                                     cfg.refine_steps, cfg.refine_lr)
         return adversary_function(self.adversary)
 
-    def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False) -> AttackEval:
+    def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
+                        intention: TanhGaussianActor | None = None) -> AttackEval:
         """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``)."""
         cfg = self.config
-        return evaluate_attack(self.victim, self.attack(refine), self.setup.make_env(cfg.seed + seeds.EVAL_ENV),
-                               self.target, cfg.threat, episodes, seed, video=video)
+        return evaluate_attack(self.victim, self.attack(refine, intention),
+                               self.setup.make_env(cfg.seed + seeds.EVAL_ENV), self.target, cfg.threat, episodes, seed,
+                               video=video)
 
     def evaluate(self) -> dict[str, float]:
-        """The attack now, and a snapshot of the adversary (for selection by r̂)."""
+        """The attack now, and a snapshot of the adversary with the π_θ it imitated (for selection by r̂)."""
         res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
         save_checkpoint(self.snapshots / f"adversary-{self.step}", "adversary-snapshot",
-                        {"adversary": self.adversary.state_dict()}, {"step": self.step})
+                        {"adversary": self.adversary.state_dict(), "intention": self.objective().intention.state_dict()},
+                        {"step": self.step})
         kept = self.keep_best_intention() if self.config.imitate == "best" and self.learner.reward_ready else {}
         return {"eval_success_rate": res.result.success_rate, **self.counters, **kept}
 
@@ -450,25 +454,29 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     adversary = trainer.adversary
     meta = {"rat": to_jsonable(cfg), **setup.describe, "target": target.name, "obs_dim": adversary.obs_dim,
             "adversary_hidden": cfg.adversary_hidden, "method": "rat"}
-    # π_θ as the adversary imitated it last, saved beside it: refinement (refine_steps) aims at its actions
-    intention = {"intention": trainer.objective().intention.state_dict()}
+    # π_θ as the adversary imitated it, saved beside it: refinement (refine_steps) aims at its actions
+    pi_theta = trainer.objective().intention
     details: dict = {"ablation": cfg.ablation, "queries_asked": trainer.learner.asked, **trainer.counters}
     if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
-        save_checkpoint(run.dir / "adversary-last", "adversary", {"adversary": adversary.state_dict(), **intention},
-                        meta)
+        save_checkpoint(run.dir / "adversary-last", "adversary",
+                        {"adversary": adversary.state_dict(), "intention": pi_theta.state_dict()}, meta)
         last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True)
-        details.update(select_by_learned_reward(trainer.snapshots, adversary, trainer.victim, trainer.learner.ensemble,
-                                                setup.make_env(cfg.seed + seeds.SELECTION_ENV), cfg))
-        details["last_attack_success_rate"] = last.result.success_rate
+        selected = select_by_learned_reward(trainer.snapshots, adversary, trainer.victim, trainer.learner.ensemble,
+                                            setup.make_env(cfg.seed + seeds.SELECTION_ENV), cfg)
+        imitated = selected.pop("intention")  # a snapshot's: the π_θ it imitated, not the last one
+        if imitated is not None:
+            pi_theta = TanhGaussianActor.from_state_dict(imitated).to(trainer.device).requires_grad_(False)
+        details.update(selected, last_attack_success_rate=last.result.success_rate)
     if cfg.refine_steps:  # the network's Δ alone, beside the refined attack
         details["network_attack_success_rate"] = trainer.evaluate_attack(
             cfg.final_eval_episodes, seeds.FINAL).result.success_rate
-    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True)
+    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, intention=pi_theta)
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
     clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
                            seeds.FINAL)
-    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(), **intention},
+    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(),
+                                                          "intention": pi_theta.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
     plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
@@ -517,19 +525,22 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
     """Load into ``adversary`` the snapshot (or the last one) whose attack the final r̂ scores highest.
 
     Every candidate is scored on the same episodes; ties go to the later one. Uses no true reward.
+    Returns the selected step, every candidate's score and, as ``intention``, the state of the π_θ a
+    selected snapshot imitated (None for the last adversary, or a snapshot saved without it).
     """
-    candidates = {"last": {k: v.clone() for k, v in adversary.state_dict().items()}}
+    candidates = {"last": ({k: v.clone() for k, v in adversary.state_dict().items()}, None)}
     for path in sorted(snapshots.glob("adversary-*.json"), key=lambda p: int(p.stem.split("-")[1])):
-        candidates[path.stem.split("-")[1]] = load_checkpoint(path, "adversary-snapshot")[0]["adversary"]
+        state = load_checkpoint(path, "adversary-snapshot")[0]
+        candidates[path.stem.split("-")[1]] = (state["adversary"], state.get("intention"))
     scores = {}
-    for name, state in candidates.items():
+    for name, (state, _) in candidates.items():
         adversary.load_state_dict(state)
         scores[name] = learned_return(victim, adversary, env, ensemble, cfg.threat, cfg.eval_episodes, seeds.SELECTION)
     order = [n for n in candidates if n != "last"] + ["last"]  # later wins ties
     best = max(reversed(order), key=lambda n: scores[n])
-    adversary.load_state_dict(candidates[best])
+    adversary.load_state_dict(candidates[best][0])
     return {"selected_step": cfg.total_steps if best == "last" else int(best),
-            "learned_returns": {n: round(v, 3) for n, v in scores.items()}}
+            "learned_returns": {n: round(v, 3) for n, v in scores.items()}, "intention": candidates[best][1]}
 
 
 def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
