@@ -117,18 +117,20 @@ def tiny_problem(dtype=torch.float64):
     return parts, obs_i, noise_i, obs_o, noise_o
 
 
-def test_hypergradient_matches_a_finite_difference():
+@pytest.mark.parametrize("normalise", [False, True])
+def test_hypergradient_matches_a_finite_difference(normalise):
     p, obs_i, noise_i, obs_o, noise_o = tiny_problem()
     temperature, eta, eps = torch.tensor(0.1, dtype=torch.float64), 0.5, 0.3
     objective = Imitation(p["victim"], p["intention"], p["critic"], temperature, ThreatModel(eps, "linf"))
-    grads = hypergradient(objective, p["adversary"], p["weighting"], obs_i, noise_i, obs_o, noise_o, eta)
+    grads = hypergradient(objective, p["adversary"], p["weighting"], obs_i, noise_i, obs_o, noise_o, eta,
+                          normalise=normalise)
 
     def outer_after_virtual_step():
         params = {k: v.detach().requires_grad_(True) for k, v in p["adversary"].named_parameters()}
         kl = objective.kl(p["adversary"], params, obs_i, noise_i)
         with torch.no_grad():
             w = p["weighting"](obs_i)
-        g = torch.autograd.grad(inner_loss(w, kl), list(params.values()))
+        g = torch.autograd.grad(inner_loss(w, kl, normalise), list(params.values()))
         virtual = {k: v - eta * gi for (k, v), gi in zip(params.items(), g)}
         with torch.no_grad():
             return objective.outer(p["adversary"], virtual, obs_o, noise_o).item()
@@ -148,6 +150,17 @@ def test_hypergradient_matches_a_finite_difference():
             assert grad[idx].item() == pytest.approx((up - down) / 2e-6, rel=1e-4, abs=1e-10)
             checked += 1
     assert checked >= 12 and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_normalised_weights_count_only_by_their_ratios():
+    torch.manual_seed(0)
+    weights, kl = 1.0 + torch.rand(64), torch.rand(64)
+    assert inner_loss(3.0 * weights, kl, normalise=True).item() == pytest.approx(inner_loss(weights, kl, True).item())
+    assert inner_loss(3.0 * weights, kl).item() == pytest.approx(3.0 * inner_loss(weights, kl).item())  # the paper's
+    with pytest.raises(RatError, match="weighting-norm=batch needs hypergradient=exact"):
+        RATConfig(weighting_norm="batch", hypergradient="batch-mean")
+    with pytest.raises(RatError, match="weighting-norm must be none or batch"):
+        RATConfig(weighting_norm="softmax")
 
 
 def test_batch_mean_hypergradient_is_a_different_approximation():
@@ -235,12 +248,14 @@ def test_refinement_starts_from_the_previous_observations_delta_when_that_fits_b
     assert gaps[3] < gaps[0] and all(b <= a + 1e-6 for a, b in zip(gaps, gaps[1:])), gaps
 
 
-def test_outer_step_moves_only_the_weighting_network():
+@pytest.mark.parametrize("normalise", [False, True])
+def test_outer_step_moves_only_the_weighting_network(normalise):
     victim, intention, adversary, weighting, cfg, obs = isolation_setup()
     before = snapshot(adversary, weighting, intention.actor, intention.critic)
     opt = torch.optim.Adam(weighting.parameters(), lr=1e-2)
     objective = Imitation(victim, intention.actor, intention.critic, intention.alpha, cfg.threat)
-    weighting_update(weighting, opt, adversary, objective, obs, torch.randn(32, 4), cfg.adversary_lr, cfg.hypergradient)
+    weighting_update(weighting, opt, adversary, objective, obs, torch.randn(32, 4), cfg.adversary_lr, cfg.hypergradient,
+                     normalise=normalise)
     assert changed(before[1], weighting)
     for b, m in zip([before[0], *before[2:]], (adversary, intention.actor, intention.critic)):
         assert not changed(b, m) and all(q.grad is None for q in m.parameters())

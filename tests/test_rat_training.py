@@ -202,7 +202,8 @@ def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_v
                               target_return=-2.0, return_scale=10.0, context_length=4)
     victim = load_decision_transformer(tmp_path / "dt")
     before = {k: v.clone() for k, v in victim.state_dict().items()}
-    cfg = replace(small_config(700), weighting_every=100, horizon=None)  # H: the environment's time limit
+    cfg = replace(small_config(700), weighting_every=100, horizon=None,  # H: the environment's time limit
+                  weighting_norm="batch")  # normalised weights, through the victim's context too
     with pytest.raises(RatError, match="memoryless victims only"):  # refinement passes no context
         train_rat(replace(cfg, refine_steps=5), AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False),
                   tmp_path / "refined")

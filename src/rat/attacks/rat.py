@@ -74,6 +74,7 @@ class RATConfig:
     victim_std: float = 1.0  #: σ_v of the perturbed policy N(μ_ν(s̃), σ_v²)
     kl_form: str = "exact"  #: "exact" Gaussian KL, or "released"
     hypergradient: str = "exact"  #: "exact" per-state hypergradient, or "batch-mean" (released)
+    weighting_norm: str = "none"  #: "none": mean_s h(s)·KL_s (the paper's); "batch": Σ h·KL / Σ h, only ratios count
     ablation: str = "none"  #: none, no-weighting, no-combined, no-intention
     horizon: int | None = None  #: episode length H of the combined behaviour policy's switch (None: the env's time limit)
     eval_every: int = 10_000  #: steps between attack evaluations
@@ -101,6 +102,11 @@ class RATConfig:
             raise RatError("select=reward scores snapshots with r̂, which an oracle run does not learn; use select=last")
         if self.kl_form not in ("exact", "released") or self.hypergradient not in ("exact", "batch-mean"):
             raise RatError("kl-form must be exact or released, hypergradient exact or batch-mean")
+        if self.weighting_norm not in ("none", "batch"):
+            raise RatError(f"weighting-norm must be none or batch, got '{self.weighting_norm}'")
+        if self.weighting_norm == "batch" and self.hypergradient == "batch-mean":
+            raise RatError("weighting-norm=batch needs hypergradient=exact: the batch-mean approximation moves only "
+                           "the weights' mean, which normalised weights ignore")
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
         if self.refine_steps and self.ablation == "no-intention":
@@ -193,11 +199,13 @@ def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim:
 
 
 def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, weighting: WeightingNetwork | None,
-                     objective: Imitation, obs: torch.Tensor, ablation: str = "none", context=None) -> dict[str, float]:
+                     objective: Imitation, obs: torch.Tensor, ablation: str = "none", context=None,
+                     normalise: bool = False) -> dict[str, float]:
     """One inner-level step: only the adversary's parameters receive a gradient and change.
 
-    Minimises the weighted KL to the intention policy (weights 1 without a weighting network),
-    or, for the ``no-intention`` ablation, the outer loss itself. ``context``: a sequence victim's, per state.
+    Minimises the weighted KL to the intention policy (weights 1 without a weighting network;
+    ``normalise``: by their sum), or, for the ``no-intention`` ablation, the outer loss itself.
+    ``context``: a sequence victim's, per state.
     """
     noise = torch.randn_like(obs)
     if ablation == "no-intention":
@@ -205,7 +213,7 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
     else:
         with torch.no_grad():
             weights = weighting(obs) if weighting is not None else torch.ones(len(obs), device=obs.device)
-        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise, context))
+        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise, context), normalise)
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=list(adversary.parameters()))  # nothing else may accumulate a gradient
     optimizer.step()
@@ -214,10 +222,11 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
 
 def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimizer, adversary: Adversary,
                      objective: Imitation, obs_inner: torch.Tensor, obs_outer: torch.Tensor, inner_lr: float,
-                     form: str = "exact", context_inner=None, context_outer=None) -> dict[str, float]:
+                     form: str = "exact", context_inner=None, context_outer=None,
+                     normalise: bool = False) -> dict[str, float]:
     """One outer-level step: the hypergradient moves the weighting network, and nothing else."""
     grads = hypergradient(objective, adversary, weighting, obs_inner, torch.randn_like(obs_inner), obs_outer,
-                          torch.randn_like(obs_outer), inner_lr, form, context_inner, context_outer)
+                          torch.randn_like(obs_outer), inner_lr, form, context_inner, context_outer, normalise)
     optimizer.zero_grad(set_to_none=True)
     for p, g in zip(weighting.parameters(), grads):
         p.grad = None if g is None else g.detach()
@@ -361,14 +370,15 @@ class RATTrainer:
         obs, context = self.last_batch = self.sample_states()
         self.counters["adversary_updates"] += 1
         return adversary_update(self.adversary, self.adversary_opt, self.weighting if self.use_weighting else None,
-                                self.objective(), obs, self.config.ablation, context)
+                                self.objective(), obs, self.config.ablation, context,
+                                self.config.weighting_norm == "batch")
 
     def weighting_step(self) -> dict[str, float]:
         (obs_inner, context_inner), (obs_outer, context_outer) = self.sample_states(), self.sample_states()
         self.counters["weighting_updates"] += 1
         return weighting_update(self.weighting, self.weighting_opt, self.adversary, self.objective(), obs_inner,
                                 obs_outer, self.config.adversary_lr, self.config.hypergradient, context_inner,
-                                context_outer)
+                                context_outer, self.config.weighting_norm == "batch")
 
     # --- evaluation and state ----------------------------------------------------------------------
 
