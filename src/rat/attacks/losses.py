@@ -142,7 +142,7 @@ class Imitation:
 def inner_loss(weights: torch.Tensor, kl: torch.Tensor, normalise: bool = False) -> torch.Tensor:
     """L(α; ω, θ) = mean_s h_ω(s) · KL_s, or with ``normalise`` Σ_s h_ω(s) KL_s / Σ_s h_ω(s).
 
-    Normalised, only the weights' ratios matter: raising every weight at once changes nothing, so the
+    Normalised, only the weights' ratios matter: scaling every weight at once changes nothing, so the
     hypergradient can only re-weight states (a departure; ``docs/design.md`` §5).
     """
     if normalise:
