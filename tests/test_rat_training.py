@@ -189,8 +189,10 @@ def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_t
     assert not labelled.pebble.oracle and (labelled.select, labelled.imitate) == ("reward", "best")
 
 
-def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_victim_had_there(tmp_path):
+def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_victim_had_there(tmp_path, monkeypatch):
     from dataclasses import replace
+
+    import rat.attacks.rat as rat_module
 
     transformers = pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
     from rat.victims.sequence import load_decision_transformer, save_decision_transformer
@@ -208,8 +210,16 @@ def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_v
         train_rat(replace(cfg, refine_steps=5), AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False),
                   tmp_path / "refined")
     assert not (tmp_path / "refined").exists()
+    normalised = []  # what each inner and outer step was told about the weights
+    for name in ("adversary_update", "weighting_update"):
+        def spy(*args, _step=getattr(rat_module, name), **kwargs):
+            normalised.append(args[-1])  # the trainer passes `normalise` last
+            return _step(*args, **kwargs)
+        monkeypatch.setattr(rat_module, name, spy)
     report = train_rat(cfg, AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False), tmp_path / "run")
     assert report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
+    assert len(normalised) == report.details["adversary_updates"] + report.details["weighting_updates"]
+    assert all(n is True for n in normalised)  # weighting_norm=batch reached both levels
     assert report.max_perturbation <= 0.1 + 1e-9
     assert all(torch.equal(before[k], v) for k, v in victim.state_dict().items())  # the victim never changes
     assert __import__("json").loads((tmp_path / "run" / "config.json").read_text())["rat"]["horizon"] == HORIZON

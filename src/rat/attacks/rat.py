@@ -387,8 +387,8 @@ class RATTrainer:
         now) if ``refine`` and ``refine_steps`` say so."""
         cfg = self.config
         if refine and cfg.refine_steps:
-            return refined_function(self.adversary, intention or self.objective().intention, self.victim, cfg.threat,
-                                    cfg.refine_steps, cfg.refine_lr)
+            target = intention if intention is not None else self.objective().intention
+            return refined_function(self.adversary, target, self.victim, cfg.threat, cfg.refine_steps, cfg.refine_lr)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
