@@ -175,6 +175,15 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
         load_rat_attack(tmp_path / "run", victim)
 
 
+@pytest.mark.parametrize("ablation, victim_acts, weighted", [("no-combined", False, True), ("no-weighting", True, False)])
+def test_each_ablation_removes_its_own_component_only(tmp_path, ablation, victim_acts, weighted):
+    report = train_rat(small_config(600, ablation=ablation), setup(), tmp_path / "run")
+    with open(tmp_path / "run" / "metrics.csv") as f:
+        switches = [float(r["switch_step"]) for r in csv.DictReader(f) if r.get("switch_step")]
+    assert switches and any(h > 0 for h in switches) == victim_acts  # h = 0: π_θ acts from the first step
+    assert report.details["adversary_updates"] > 0 and (report.details["weighting_updates"] > 0) == weighted
+
+
 def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_the_live_intention_policy():
     from dataclasses import replace
 

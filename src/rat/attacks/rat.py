@@ -272,7 +272,7 @@ class RATTrainer:
         self.weighting_opt = torch.optim.Adam(self.weighting.parameters(), lr=cfg.weighting_lr)
         mode = {"no-combined": "intention", "no-intention": "victim"}.get(cfg.ablation, "combined")
         self.behaviour = CombinedBehaviourPolicy(cfg.horizon or episode_length(env), mode)
-        self.use_weighting = cfg.ablation == "none"
+        self.use_weighting = cfg.ablation not in ("no-weighting", "no-intention")  # no-combined keeps h_ω
         self.counters = {"adversary_updates": 0, "weighting_updates": 0}
         self.best: dict | None = None  # imitate="best": frozen copies of π_θ's actor and critic, its temperature
         self.finished = False
