@@ -132,6 +132,7 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
 
     report = train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run")
     assert 0.0 <= report.details["network_attack_success_rate"] <= 1.0 and "network's Δ alone" in report.summary()
+    assert 0.0 <= report.details["refined_gap"] < 2 * 2 ** 0.5 and "gap left to π_θ's actions" in report.summary()
     assert report.max_perturbation <= 0.1 + 1e-9
     state, meta = load_checkpoint(tmp_path / "run" / "adversary")
     assert meta["rat"]["refine_steps"] == 10 and set(state["intention"]) >= {"trunk.0.weight"}

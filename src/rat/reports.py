@@ -98,7 +98,10 @@ class AttackReport(_Report):
                 f"{self.episodes} episodes), {self.labels} labels, {self.steps} steps; "
                 f"max perturbation {self.max_perturbation:.4f} <= epsilon {self.epsilon:g} ({self.norm})")
         if (network := (self.details or {}).get("network_attack_success_rate")) is not None:
-            text += f"; Δ refined at every observation (the adversary network's Δ alone: {100 * network:.1f}%)"
+            text += f"; Δ refined at every observation (the adversary network's Δ alone: {100 * network:.1f}%"
+            if (gap := self.details.get("refined_gap")) is not None:
+                text += f"; gap left to π_θ's actions: {gap:.2f}"
+            text += ")"
         if self.clean_success_rate is None:
             return text
         text += f"; the clean victim: {100 * self.clean_success_rate:.1f}%"

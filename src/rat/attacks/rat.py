@@ -382,20 +382,22 @@ class RATTrainer:
 
     # --- evaluation and state ----------------------------------------------------------------------
 
-    def attack(self, refine: bool = False, intention: TanhGaussianActor | None = None) -> Perturbation:
+    def attack(self, refine: bool = False, intention: TanhGaussianActor | None = None,
+               gaps: list[float] | None = None) -> Perturbation:
         """The attack as deployed: the adversary's Δ, refined towards π_θ (``intention``, else the one imitated
-        now) if ``refine`` and ``refine_steps`` say so."""
+        now) if ``refine`` and ``refine_steps`` say so; ``gaps`` then receives the gap left at each observation."""
         cfg = self.config
         if refine and cfg.refine_steps:
             target = intention if intention is not None else self.objective().intention
-            return refined_function(self.adversary, target, self.victim, cfg.threat, cfg.refine_steps, cfg.refine_lr)
+            return refined_function(self.adversary, target, self.victim, cfg.threat, cfg.refine_steps, cfg.refine_lr,
+                                    gaps)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
-                        intention: TanhGaussianActor | None = None) -> AttackEval:
+                        intention: TanhGaussianActor | None = None, gaps: list[float] | None = None) -> AttackEval:
         """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``)."""
         cfg = self.config
-        return evaluate_attack(self.victim, self.attack(refine, intention),
+        return evaluate_attack(self.victim, self.attack(refine, intention, gaps),
                                self.setup.make_env(cfg.seed + seeds.EVAL_ENV), self.target, cfg.threat, episodes, seed,
                                video=video)
 
@@ -480,7 +482,10 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     if cfg.refine_steps:  # the network's Δ alone, beside the refined attack
         details["network_attack_success_rate"] = trainer.evaluate_attack(
             cfg.final_eval_episodes, seeds.FINAL).result.success_rate
-    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, intention=pi_theta)
+    gaps: list[float] = []  # what refinement left of ‖μ_ν(s̃) − tanh μ_θ(s)‖ along the attacked episodes
+    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, intention=pi_theta, gaps=gaps)
+    if gaps:  # large where π_θ asks for actions the ball cannot make the victim take (benchmarks/strength.md)
+        details["refined_gap"] = float(np.mean(gaps))
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
     clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
