@@ -155,9 +155,14 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     result = __import__("json").loads(out)
     assert result["within_budget"] and result["task"] == "drawer-open-v3" and result["target"] == "reach"
     assert result["clean_target_success_rate"] == 0.0  # the clean victim opens the drawer; it never reaches the goal
+    assert result["refined_gap"] is None  # the network's Δ alone
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "1", "--refine-steps", "3",
                          "--json")  # Δ refined towards the saved π_θ at every observation
-    assert code == 0 and __import__("json").loads(out)["within_budget"], err
+    refined = __import__("json").loads(out)
+    assert code == 0 and refined["within_budget"] and 0.0 <= refined["refined_gap"] < 2 * 4 ** 0.5, err
+    code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run" / "adversary.json"), "--episodes", "1",
+                         "--refine-steps", "3")  # one saved adversary, named by its file
+    assert code == 0 and "the gap left to its actions" in out, err
 
     from rat.experiments.runner import film_attack
 

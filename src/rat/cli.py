@@ -607,6 +607,8 @@ def attack_eval(run, episodes, seed, video, record, refine_steps, as_json) -> No
         return
     click.echo(f"{r['method']} against {r['victim']} on {r['task']}, target '{r['target']}'")
     click.echo(f"  attacked: {attacked.summary()}")
+    if r["refined_gap"] is not None:
+        click.echo(f"  Δ refined towards π_θ; the gap left to its actions, mean over the observations: {r['refined_gap']:.3f}")
     click.echo(f"  clean:    {clean.summary()}")
     if record is not None:
         click.echo(f"every perturbation's size: {record} ({len(attacked.records)} observations)")

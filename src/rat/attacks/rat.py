@@ -579,9 +579,11 @@ def load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, d
     return adversary, intention, meta
 
 
-def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None) -> Perturbation:
+def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
+                    gaps: list[float] | None = None) -> Perturbation:
     """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
-    Adam steps per observation (None: as the run was configured; 0: the network's Δ alone)."""
+    Adam steps per observation (None: as the run was configured; 0: the network's Δ alone). ``gaps``, if
+    given, receives the gap refinement leaves at each observation."""
     adversary, intention, meta = load_saved(run)
     cfg = meta.get("rat", {})
     steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
@@ -595,7 +597,7 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if is_sequence(victim):
         raise RatError("refine-steps works on memoryless victims only; evaluate this attack without refinement")
     return refined_function(adversary, intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
-                            cfg.get("refine_lr", RATConfig.refine_lr))
+                            cfg.get("refine_lr", RATConfig.refine_lr), gaps)
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta
 from rat.attacks.evaluation import evaluate_attack, evaluate_clean
 from rat.attacks.rat import load_rat_attack
@@ -71,10 +73,12 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
         raise RatError(f"--refine-steps refines a RAT adversary towards its intention policy; '{run}' is a "
                        f"{meta['method']} attack: drop --refine-steps")
     victim = load_victim(meta["victim"])
-    if refine_steps is None:
-        perturbation, meta = load_attack(run, victim)
+    gaps: list[float] = []  # the gap a refined RAT attack leaves to π_θ's action, per observation
+    if meta.get("method", "rat") == "rat":  # the run, or one adversary saved in it (adversary-last[.json])
+        path = Path(run).with_suffix("") if Path(run).suffix in (".json", ".safetensors") else Path(run)
+        perturbation = load_rat_attack(path, victim, refine_steps, gaps)
     else:
-        perturbation = load_rat_attack(run, victim, refine_steps)
+        perturbation, meta = load_attack(run, victim)
     target = get_target(meta["target"])
     cfg = meta.get("rat", meta)  # RAT keeps its budget in its config, the baselines at the top level
     threat = ThreatModel(cfg["epsilon"], cfg["norm"])
@@ -84,7 +88,7 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     clean = evaluate_clean(victim, make_task(meta["task"], seed=seed), target, episodes, seed)
     return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"],
             "method": meta.get("method", "rat"), "epsilon": threat.epsilon, "norm": threat.norm, "attack": attacked,
-            "clean": clean}
+            "clean": clean, "refined_gap": float(np.mean(gaps)) if gaps else None}
 
 
 def film_attack(run: str | Path, path: str | Path, seed: int = 0, episodes: int = 10, show: int = 2) -> list[bool]:
