@@ -185,6 +185,33 @@ def test_each_ablation_removes_its_own_component_only(tmp_path, ablation, victim
     assert report.details["adversary_updates"] > 0 and (report.details["weighting_updates"] > 0) == weighted
 
 
+def test_the_intention_anchor_pulls_pi_thetas_reward_towards_the_clean_victims_action_and_only_that(tmp_path):
+    from dataclasses import replace
+
+    from rat.attacks.rat import RATTrainer
+    from rat.preferences.store import LabelStore
+
+    cfg, s = small_config(600, intention_anchor=0.5), setup()
+    trainer = RATTrainer(cfg, s, s.make_env(0), LabelStore(tmp_path / "labels.sqlite"), "run", tmp_path / "snapshots")
+    learner, rng = trainer.learner, np.random.default_rng(0)
+    obs = rng.uniform(-1, 1, (64, 4)).astype(np.float32)
+    clean = point_victim().act(torch.as_tensor(obs)).numpy()
+    action = np.clip(clean + rng.normal(0, 0.3, clean.shape), -1, 1).astype(np.float32)
+    r_hat = learner.ensemble.r_hat(obs, action)
+    np.testing.assert_allclose(learner.learned_reward(obs, action), r_hat - 0.5 * ((action - clean) ** 2).sum(-1),
+                               rtol=1e-5, atol=1e-6)  # what SAC learns from, relabelled or per transition
+    np.testing.assert_allclose(learner.learned_reward(obs, clean), learner.ensemble.r_hat(obs, clean), rtol=1e-5,
+                               atol=1e-6)  # no pull at the clean victim's own action
+    assert np.isclose(learner.learned_reward(obs[0], action[0]), learner.learned_reward(obs, action)[0], atol=1e-6)
+    plain = RATTrainer(replace(cfg, intention_anchor=0.0), s, s.make_env(0), LabelStore(tmp_path / "plain.sqlite"),
+                       "plain", tmp_path / "plain")
+    assert plain.learner.reward_shaping is None  # the paper's: r̂ alone
+    with pytest.raises(RatError, match="intention-anchor must be"):
+        RATConfig(intention_anchor=-1.0)
+    with pytest.raises(RatError, match="oracle run"):
+        RATConfig(intention_anchor=0.1, select="last", pebble=PebbleConfig(oracle=True))
+
+
 def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_the_live_intention_policy():
     from dataclasses import replace
 
@@ -220,6 +247,10 @@ def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_v
         train_rat(replace(cfg, refine_steps=5), AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1), progress=False),
                   tmp_path / "refined")
     assert not (tmp_path / "refined").exists()
+    with pytest.raises(RatError, match="intention-anchor needs"):  # the clean action needs the context too
+        train_rat(replace(cfg, intention_anchor=0.1), AttackSetup(victim, BESIDE, PointGoal, ThreatModel(0.1),
+                                                                  progress=False), tmp_path / "anchored")
+    assert not (tmp_path / "anchored").exists()
     normalised = []  # what each inner and outer step was told about the weights
     for name in ("adversary_update", "weighting_update"):
         def spy(*args, _step=getattr(rat_module, name), **kwargs):

@@ -86,6 +86,7 @@ class RATConfig:
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
+    intention_anchor: float = 0.0  #: λ: π_θ learns from r̂ − λ‖a − μ_ν(s)‖², near the victim's clean action (0: off)
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
@@ -109,6 +110,11 @@ class RATConfig:
                            "the weights' mean, which normalised weights ignore")
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
+        if self.intention_anchor < 0:
+            raise RatError(f"intention-anchor must be ≥ 0, got {self.intention_anchor}")
+        if self.intention_anchor and self.pebble.oracle:
+            raise RatError("intention-anchor shapes the learned reward r̂, which an oracle run does not learn; "
+                           "leave it at 0 for an oracle run")
         if self.refine_steps and self.ablation == "no-intention":
             raise RatError("refine-steps refines Δ towards π_θ, which the no-intention ablation does not imitate; "
                            "drop one of the two")
@@ -282,6 +288,17 @@ class RATTrainer:
         # a sequence victim's context at each stored state, row for row (a run never stores more than its steps):
         capacity = min(self.learner.buffer.capacity, cfg.total_steps)
         self.contexts = np.zeros((capacity, self.victim.context_size), np.float32) if self.sequence else None
+        if cfg.intention_anchor:
+            self.learner.reward_shaping = self.anchor
+
+    @torch.no_grad()
+    def anchor(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """−λ‖a − μ_ν(s)‖², per row: how far π_θ's action lies from the clean victim's, which the ball surrounds
+        (a departure, off by default: π_θ is pulled towards actions the victim can be made to take)."""
+        obs = torch.as_tensor(np.atleast_2d(obs), dtype=torch.float32, device=self.device)
+        clean = self.victim.act(obs).cpu().numpy()
+        gap = ((np.atleast_2d(action) - clean) ** 2).sum(-1)
+        return -self.config.intention_anchor * (gap if np.ndim(action) > 1 else gap[0])
 
     @property
     def step(self) -> int:
@@ -454,6 +471,9 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     if cfg.refine_steps and is_sequence(setup.victim):
         raise RatError("refine-steps works on memoryless victims only (it does not pass a sequence victim's context); "
                        "leave refine_steps at 0 for this victim")
+    if cfg.intention_anchor and is_sequence(setup.victim):
+        raise RatError("intention-anchor needs the victim's clean action at every stored state, which a sequence "
+                       "victim gives only in its context; leave intention_anchor at 0 for this victim")
     run = Run(out, {"rat": cfg, **setup.describe}, tensorboard)  # the dataclass: a later setting at its default resumes
     store = LabelStore(run.dir / "labels.sqlite")
     trainer = RATTrainer(cfg, setup, env, store, run.dir.name, run.dir / "snapshots", setup.labeller)

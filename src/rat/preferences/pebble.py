@@ -20,6 +20,7 @@ Every label goes to a :class:`~rat.preferences.store.LabelStore` as it arrives.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import torch
@@ -125,6 +126,8 @@ class PebbleLearner:
         self.entropy_stats = RunningMeanStd()
         self.schedule = config.schedule
         self.reward_stats = (0.0, 1.0)  # mean and std that r̂ is standardised with (normalize_reward)
+        # a term added to r̂ where SAC learns from it (RAT's intention anchor); queries and scores use r̂ alone
+        self.reward_shaping: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
         self.step = 0  # environment steps observed
         self.asked = 0  # queries counted against the budget
         self.round = 0  # query rounds done
@@ -244,9 +247,11 @@ class PebbleLearner:
         return metrics
 
     def learned_reward(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
-        """r̂ as the policy is trained on it: the ensemble mean, standardised when ``normalize_reward``."""
+        """r̂ as the policy is trained on it: the ensemble mean, standardised when ``normalize_reward``, plus
+        ``reward_shaping`` when one is set."""
         mean, std = self.reward_stats
-        return (self.ensemble.r_hat(obs, action) - mean) / std
+        reward = (self.ensemble.r_hat(obs, action) - mean) / std
+        return reward if self.reward_shaping is None else reward + self.reward_shaping(obs, action)
 
     # --- checkpoints ----------------------------------------------------------------------------
 
