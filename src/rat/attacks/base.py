@@ -159,6 +159,12 @@ def saved_attack_meta(run: str | Path) -> dict[str, Any]:
     return meta
 
 
+def saved_attack_path(run: str | Path) -> Path:
+    """A run directory as it is, or one saved attack in it named with or without its ``.json``/``.safetensors``."""
+    path = Path(run)
+    return path.with_suffix("") if not path.is_dir() and path.suffix in (".json", ".safetensors") else path
+
+
 def load_attack(run: str | Path, victim: Victim) -> tuple[Perturbation, dict[str, Any]]:
     """Any saved attack as ``obs -> Δ``, with its metadata (runs written before the registry load too).
 
@@ -167,10 +173,9 @@ def load_attack(run: str | Path, victim: Victim) -> tuple[Perturbation, dict[str
     meta = saved_attack_meta(run)
     method = meta.get("method", "rat")
     attack = get_attack(method)
-    path = Path(run)
+    path = saved_attack_path(run)
     if path.is_dir():
         return attack.load(path, meta, victim), meta
-    path = path.with_suffix("") if path.suffix in (".json", ".safetensors") else path
     if path.name == "adversary":
         return attack.load(path.parent, meta, victim), meta
     if method != "rat":

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta
+from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta, saved_attack_path
 from rat.attacks.evaluation import evaluate_attack, evaluate_clean
 from rat.attacks.rat import load_rat_attack
 from rat.attacks.threat import ThreatModel
@@ -75,8 +75,7 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     victim = load_victim(meta["victim"])
     gaps: list[float] = []  # the gap a refined RAT attack leaves to π_θ's action, per observation
     if meta.get("method", "rat") == "rat":  # the run, or one adversary saved in it (adversary-last[.json])
-        path = Path(run).with_suffix("") if Path(run).suffix in (".json", ".safetensors") else Path(run)
-        perturbation = load_rat_attack(path, victim, refine_steps, gaps)
+        perturbation = load_rat_attack(saved_attack_path(run), victim, refine_steps, gaps)
     else:
         perturbation, meta = load_attack(run, victim)
     target = get_target(meta["target"])
