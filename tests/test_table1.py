@@ -39,6 +39,7 @@ def test_a_grid_resumes_without_rerunning_finished_cells(tmp_path):
     assert [int(r["seed"]) for r in rows] == [0, 1, 2] and all(r["preset"] == "smoke" for r in rows)
     assert all(r["victim"] == "zoo:drawer-open-v3" and r["victim_method"].startswith("sac") for r in rows)
     assert all(0 <= float(r["clean_success_rate"]) <= 1 for r in rows)  # the unattacked victim, the yardstick
+    assert all(r["refined_gap"] == "" for r in rows)  # the column is there; only a refined RAT cell fills it
     assert json.loads((tmp_path / "grid.json").read_text())["preset"]["name"] == "smoke"
     table = (tmp_path / "table1.md").read_text()
     assert "| manipulation | drawer-open-v3 |" in table and "/ 97.5" in table and "| clean |" in table  # the paper's RAT figure beside ours

@@ -169,6 +169,7 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "victim": setup.victim.name, "victim_method": setup.victim.meta.get("method", "?"),
            "last_attack_success_rate": report.details.get("last_attack_success_rate", report.attack_success_rate),
            "network_attack_success_rate": report.details.get("network_attack_success_rate"),  # when Δ is refined
+           "refined_gap": report.details.get("refined_gap"),  # what refinement left of ‖μ_ν(s̃) − π_θ(s)‖
            "clean_success_rate": report.clean_success_rate}
     tmp = directory / "result.json.tmp"
     tmp.write_text(json.dumps(row, indent=1))
@@ -303,7 +304,7 @@ def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
     """``results.csv``, ``table1.md`` and ``curves-<task>.png`` from the finished cells."""
     fields = ["task", "scenario", "method", "seed", "attack_success_rate", "ci_low", "ci_high", "episodes", "labels",
               "max_perturbation", "epsilon", "norm", "preset", "minutes", "train_minutes", "victim", "victim_method",
-              "last_attack_success_rate", "network_attack_success_rate", "clean_success_rate"]
+              "last_attack_success_rate", "network_attack_success_rate", "refined_gap", "clean_success_rate"]
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")
         writer.writeheader()
