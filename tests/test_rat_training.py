@@ -206,8 +206,19 @@ def test_the_intention_anchor_pulls_pi_thetas_reward_towards_the_clean_victims_a
     plain = RATTrainer(replace(cfg, intention_anchor=0.0), s, s.make_env(0), LabelStore(tmp_path / "plain.sqlite"),
                        "plain", tmp_path / "plain")
     assert plain.learner.reward_shaping is None  # the paper's: r̂ alone
+    attacked = RATTrainer(replace(cfg, anchor_to="attacked"), s, s.make_env(0),
+                          LabelStore(tmp_path / "attacked.sqlite"), "attacked", tmp_path / "attacked")
+    with torch.no_grad():
+        s_obs = torch.as_tensor(obs)
+        moved = point_victim().act(cfg.threat.perturb(s_obs, attacked.adversary(s_obs))).numpy()
+    assert np.abs(moved - clean).max() > 1e-3  # the adversary moves the victim, so the two anchors differ
+    np.testing.assert_allclose(attacked.learner.learned_reward(obs, action),
+                               attacked.learner.ensemble.r_hat(obs, action) - 0.5 * ((action - moved) ** 2).sum(-1),
+                               rtol=1e-5, atol=1e-6)  # anchored at what the current adversary makes the victim do
     with pytest.raises(RatError, match="intention-anchor must be"):
         RATConfig(intention_anchor=-1.0)
+    with pytest.raises(RatError, match="anchor-to must be clean or attacked"):
+        RATConfig(anchor_to="perturbed")
     with pytest.raises(RatError, match="oracle run"):
         RATConfig(intention_anchor=0.1, select="last", pebble=PebbleConfig(oracle=True))
 

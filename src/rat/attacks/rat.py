@@ -87,6 +87,7 @@ class RATConfig:
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
     intention_anchor: float = 0.0  #: λ: π_θ learns from r̂ − λ‖a − μ_ν(s)‖², near the victim's clean action (0: off)
+    anchor_to: str = "clean"  #: the anchor's action: the victim's "clean" μ_ν(s), or "attacked" μ_ν(s + εΔ(s)) under the current adversary
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
@@ -112,6 +113,8 @@ class RATConfig:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
         if self.intention_anchor < 0:
             raise RatError(f"intention-anchor must be ≥ 0, got {self.intention_anchor}")
+        if self.anchor_to not in ("clean", "attacked"):
+            raise RatError(f"anchor-to must be clean or attacked, got '{self.anchor_to}'")
         if self.intention_anchor and self.pebble.oracle:
             raise RatError("intention-anchor shapes the learned reward r̂, which an oracle run does not learn; "
                            "leave it at 0 for an oracle run")
@@ -294,10 +297,14 @@ class RATTrainer:
     @torch.no_grad()
     def anchor(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
         """−λ‖a − μ_ν(s)‖², per row: how far π_θ's action lies from the clean victim's, which the ball surrounds
-        (a departure, off by default: π_θ is pulled towards actions the victim can be made to take)."""
+        (a departure, off by default: π_θ is pulled towards actions the victim can be made to take). With
+        ``anchor_to="attacked"`` the anchor is the victim's action under the current adversary's deterministic
+        Δ, μ_ν(s + εΔ(s)): what the attack makes of that state now (refreshed whenever the buffer is relabelled)."""
         obs = torch.as_tensor(np.atleast_2d(obs), dtype=torch.float32, device=self.device)
-        clean = self.victim.act(obs).cpu().numpy()
-        gap = ((np.atleast_2d(action) - clean) ** 2).sum(-1)
+        if self.config.anchor_to == "attacked":
+            obs = self.config.threat.perturb(obs, self.adversary(obs))
+        anchor = self.victim.act(obs).cpu().numpy()
+        gap = ((np.atleast_2d(action) - anchor) ** 2).sum(-1)
         return -self.config.intention_anchor * (gap if np.ndim(action) > 1 else gap[0])
 
     @property
