@@ -1,15 +1,18 @@
 """Where a RAT run's time goes, per 1,000 environment steps, with the `cpu` preset.
 
-    python benchmarks/rat_profile.py > benchmarks/rat_profile.md
+    python benchmarks/rat_profile.py [--labels 9000] [--victim zoo:faucet-close-v3] > benchmarks/rat_profile.md
 
 Each component is timed as the RAT loop runs it (median of repeats after a warm-up), then scaled
 to its frequency per 1,000 steps: 1,000 environment steps with the victim's or intention
 policy's action, 1,000 intention-SAC updates, 100 adversary updates (10 every 100 steps), one
 weighting update per 1,000 steps, and one reward round (training plus relabelling) every 5,000.
+The timed round trains on all ``--labels`` labels at once, as the run's last round does: the
+costliest round, so the reward model's share is an upper bound.
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import tempfile
 import time
@@ -36,10 +39,15 @@ def timed(fn, repeats: int, warmup: int = 2) -> float:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--labels", type=int, default=9000, help="labels held in the timed reward round "
+                        "(the paper's 9,000 for a manipulation row)")
+    parser.add_argument("--victim", default="zoo:faucet-close-v3")
+    args = parser.parse_args()
     torch.set_num_threads(1)
 
-    cfg = rat_config("cpu", budget=1000)
-    setup = attack_setup("zoo:drawer-open-v3", "reach", cfg.threat, progress=False)
+    cfg = rat_config("cpu", budget=args.labels)
+    setup = attack_setup(args.victim, "reach", cfg.threat, progress=False)
     env, target = setup.make_env(0), setup.target
     tmp = tempfile.mkdtemp()
     rat = RATTrainer(cfg, setup, env, LabelStore(f"{tmp}/labels.sqlite"), "profile", Path(tmp) / "snapshots")
@@ -62,25 +70,31 @@ def main() -> None:
             if term or trunc:
                 o, _ = env.reset()
 
+    adversary = 1000 / cfg.adversary_every * cfg.adversary_updates  # per 1,000 steps, as the run schedules them
+    weighting = 1000 / cfg.weighting_every
     rows = {
         "environment (1,000 steps, acting included)": timed(env_steps, 3, 1),
         "intention SAC (1,000 updates, batch 256)": 1000 * timed(lambda: learner.update(), 50, 5),
-        "adversary (100 updates, batch 256)": 100 * timed(rat.adversary_step, 30),
-        "weighting network (1 hypergradient update, batch 256)": timed(rat.weighting_step, 10),
+        f"adversary ({adversary:g} updates, batch {cfg.adversary_batch})": adversary * timed(rat.adversary_step, 30),
+        f"weighting network ({weighting:g} hypergradient updates, batch {cfg.adversary_batch})":
+            weighting * timed(rat.weighting_step, 10),
     }
     teacher = ScriptedTeacher()
-    pairs = learner.history.sample_pairs(1000, 50, rng)
+    pairs = learner.history.sample_pairs(args.labels, 50, rng)
     labels = teacher.label(pairs, rng)
 
     def reward_round():
         learner.ensemble.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, labels.y, rng)
         learner.buffer.relabel(lambda o, a, _: learner.ensemble.r_hat(o, a))
 
-    rows["reward model (1/5 of a round: 1,000 labels, <= 30 epochs, relabel 10k)"] = timed(reward_round, 1, 0) / 5
+    epochs, updates = cfg.pebble.reward.max_epochs, cfg.pebble.reward.max_updates
+    rows[f"reward model (1/5 of a round: {args.labels:,} labels, ≤ {epochs} epochs and ≤ {updates} updates a "
+         "member, relabel 10k)"] = timed(reward_round, 1, 0) / 5
     total = sum(rows.values())
     print("# Where the time goes: RAT, `cpu` preset, per 1,000 environment steps\n")
-    print("Measured by `python benchmarks/rat_profile.py` on this project's 2-core CPU machine, torch on one")
-    print("thread, drawer-open-v3 with the zoo victim (medians after warm-up; the machine is shared and noisy).\n")
+    print(f"Measured by `python benchmarks/rat_profile.py --labels {args.labels} --victim {args.victim}` on this "
+          "project's 2-core CPU machine, torch on one")
+    print("thread, target `reach` (medians after warm-up; the machine is shared and noisy).\n")
     print("| component | seconds per 1,000 steps | share |")
     print("| --- | ---: | ---: |")
     for name, sec in rows.items():
