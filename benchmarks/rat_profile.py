@@ -76,7 +76,7 @@ def main() -> None:
         "environment (1,000 steps, acting included)": timed(env_steps, 3, 1),
         "intention SAC (1,000 updates, batch 256)": 1000 * timed(lambda: learner.update(), 50, 5),
         f"adversary ({adversary:g} updates, batch {cfg.adversary_batch})": adversary * timed(rat.adversary_step, 30),
-        f"weighting network ({weighting:g} hypergradient updates, batch {cfg.adversary_batch})":
+        f"weighting network ({weighting:g} hypergradient update{'s' if weighting != 1 else ''}, batch {cfg.adversary_batch})":
             weighting * timed(rat.weighting_step, 10),
     }
     teacher = ScriptedTeacher()
