@@ -248,6 +248,33 @@ def test_refinement_starts_from_the_previous_observations_delta_when_that_fits_b
     assert gaps[3] < gaps[0] and all(b <= a + 1e-6 for a, b in zip(gaps, gaps[1:])), gaps
 
 
+def test_refinement_by_the_kl_favours_the_action_dimensions_pi_theta_is_sure_of():
+    victim, intention, adversary, _, _, _ = isolation_setup()
+    with torch.no_grad():  # π_θ sure of its first action dimension (σ at the lower bound), unsure of its second
+        intention.actor.trunk[-1].bias[2] -= 50.0
+        intention.actor.trunk[-1].bias[3] += 50.0
+    threat, obs = ThreatModel(0.5), np.random.default_rng(0).normal(size=(40, 4))
+    sure, whole, reported = {}, {}, []
+    for loss in ("l2", "kl"):
+        errors = []
+        for o in obs:
+            delta = refined_function(adversary, intention.actor, victim, threat, 30, loss=loss,
+                                     gaps=reported if loss == "kl" else None)(o)
+            s = torch.as_tensor(o, dtype=torch.float32).unsqueeze(0)
+            with torch.no_grad():
+                errors.append((victim.act(threat.perturb(s, torch.as_tensor(delta).float().unsqueeze(0)))
+                               - intention.actor(s))[0].numpy())
+        sure[loss], whole[loss] = np.abs(np.array(errors)[:, 0]), np.linalg.norm(errors, axis=1)
+    assert sure["kl"].mean() < 0.8 * sure["l2"].mean(), (sure["kl"].mean(), sure["l2"].mean())
+    assert stats.wilcoxon(sure["l2"], sure["kl"], alternative="greater").pvalue < 1e-3
+    assert whole["l2"].mean() < whole["kl"].mean()  # each loss wins on its own terms
+    np.testing.assert_allclose(reported, whole["kl"], rtol=1e-4, atol=1e-5)  # the gap reported is ‖·‖, either way
+    with pytest.raises(RatError, match="refine-loss must be one of l2, kl"):
+        refined_function(adversary, intention.actor, victim, threat, 5, loss="cosine")
+    with pytest.raises(RatError, match="refine-loss must be one of l2, kl"):
+        RATConfig(refine_loss="cosine")
+
+
 @pytest.mark.parametrize("normalise", [False, True])
 def test_outer_step_moves_only_the_weighting_network(normalise):
     victim, intention, adversary, weighting, cfg, obs = isolation_setup()

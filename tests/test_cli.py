@@ -227,7 +227,9 @@ def test_a_baseline_from_the_cli_then_attack_eval(capsys, tmp_path):
     result = __import__("json").loads(out)
     assert code == 0 and result["method"] == "random" and result["task"] == "drawer-close-v3" and result["within_budget"]
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-steps", "5")[::2],
-                      "drop --refine-steps")
+                      "drop them")
+    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-loss", "kl")[::2],
+                      "drop them")
 
 
 def test_baseline_and_grid_bad_inputs(capsys, tmp_path):

@@ -583,8 +583,11 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
 @click.option("--refine-steps", type=int, default=None,
               help="RAT only: Adam steps on Δ per observation towards the intention policy's action "
                    "(0: the adversary network's Δ alone) [the run's refine_steps]")
+@click.option("--refine-loss", type=click.Choice(["l2", "kl"]), default=None,
+              help="RAT only: what refinement minimises: the squared action gap (l2) or the adversary's own "
+                   "KL loss (kl) [the run's refine_loss]")
 @click.option("--json", "as_json", is_flag=True)
-def attack_eval(run, episodes, seed, video, record, refine_steps, as_json) -> None:
+def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, as_json) -> None:
     """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
     from rat.experiments.runner import evaluate_saved_attack
     from rat.runs import check_writable_file
@@ -594,7 +597,7 @@ def attack_eval(run, episodes, seed, video, record, refine_steps, as_json) -> No
     for path, what in ((video, "--video"), (record, "--record")):
         if path is not None:
             check_writable_file(path, what)
-    r = evaluate_saved_attack(run, episodes, seed, video, refine_steps=refine_steps)
+    r = evaluate_saved_attack(run, episodes, seed, video, refine_steps=refine_steps, refine_loss=refine_loss)
     attacked, clean = r["attack"], r["clean"]
     if record is not None:
         attacked.write_records(record)

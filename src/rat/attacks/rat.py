@@ -36,7 +36,8 @@ from rat import seeds
 from rat.agents.networks import TanhGaussianActor
 from rat.attacks.base import AttackSetup, register_attack
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
-from rat.attacks.losses import Adversary, Imitation, WeightingNetwork, hypergradient, inner_loss, saturation
+from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
+                               intention_gaussian, saturation)
 from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
 from rat.device import resolve_device
@@ -53,6 +54,7 @@ from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_json
 from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
+REFINE_LOSSES = ("l2", "kl")  #: what refinement at attack time minimises (RATConfig.refine_loss)
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,7 @@ class RATConfig:
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
+    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap, or "kl", the adversary's own loss
     intention_anchor: float = 0.0  #: λ: π_θ learns from r̂ − λ‖a − μ_ν(s)‖², near the victim's clean action (0: off)
     anchor_to: str = "clean"  #: the anchor's action: the victim's "clean" μ_ν(s), or "attacked" μ_ν(s + εΔ(s)) under the current adversary
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
@@ -109,6 +112,8 @@ class RATConfig:
         if self.weighting_norm == "batch" and self.hypergradient == "batch-mean":
             raise RatError("weighting-norm=batch needs hypergradient=exact: the batch-mean approximation moves only "
                            "the weights' mean, which normalised weights ignore")
+        if self.refine_loss not in REFINE_LOSSES:
+            raise RatError(f"refine-loss must be one of {', '.join(REFINE_LOSSES)}, got '{self.refine_loss}'")
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
         if self.intention_anchor < 0:
@@ -165,42 +170,54 @@ def adversary_function(adversary: Adversary) -> Perturbation:
 
 
 def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
-                     steps: int, lr: float = 0.1, gaps: list[float] | None = None) -> Perturbation:
+                     steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
+                     victim_std: float = 1.0, kl_form: str = "exact") -> Perturbation:
     """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §10).
 
     From the network's Δ, ``steps`` Adam steps on Δ itself (through tanh, so Δ stays in (−1, 1)^d and
-    the perturbation in the ball) minimise this one state's imitation gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖²;
-    the Δ with the smallest gap seen is used. The steps start from the network's Δ or from the Δ
-    chosen at the previous observation, whichever leaves the smaller gap here (consecutive states are
-    close). It needs what training already does — the victim's gradient and π_θ — and costs ``steps``
-    forward and backward passes of the victim per observation. Memoryless victims only (a sequence
-    victim's context is not passed). ``gaps``, if given, receives the gap left at each observation.
+    the perturbation in the ball) minimise this one state's imitation loss: ``loss="l2"``, the squared
+    gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖², every action dimension alike; ``loss="kl"``, the adversary's own
+    training loss at this state, KL(N(μ_ν(s̃), σ_v²) ‖ π_θ(s)) (``victim_std``, ``kl_form``), which weighs
+    each dimension by π_θ's confidence in it. The Δ with the smallest loss seen is used. The steps start
+    from the network's Δ or from the Δ chosen at the previous observation, whichever leaves the smaller
+    loss here (consecutive states are close). It needs what training already does — the victim's
+    gradient and π_θ — and costs ``steps`` forward and backward passes of the victim per observation.
+    Memoryless victims only (a sequence victim's context is not passed). ``gaps``, if given, receives the
+    gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ left at each observation (whichever loss chose Δ).
     """
+    if loss not in REFINE_LOSSES:
+        raise RatError(f"refine-loss must be one of {', '.join(REFINE_LOSSES)}, got '{loss}'")
     device = next(adversary.parameters()).device
     previous: list[torch.Tensor] = []  # the last Δ chosen, before tanh
 
-    def gap_of(s: torch.Tensor, raw: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return (victim.act(threat.perturb(s, torch.tanh(raw))) - target).pow(2).sum()
+    def action_of(s: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
+        return victim.act(threat.perturb(s, torch.tanh(raw)))
+
+    def loss_of(s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+        if loss == "kl":
+            return gaussian_kl(action_of(s, raw), victim_std, mean, log_std, kl_form).sum()
+        return (action_of(s, raw) - mean).pow(2).sum()
 
     def delta(obs: np.ndarray) -> np.ndarray:
         s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
+        mean, log_std = intention_gaussian(intention, s)
         with torch.no_grad():
-            target = torch.tanh(intention.distribution_params(s)[0])
             starts = [torch.atanh(adversary(s).clamp(-0.999, 0.999))] + previous
-            raw = min(starts, key=lambda r: gap_of(s, r, target).item()).clone()
+            raw = min(starts, key=lambda r: loss_of(s, r, mean, log_std).item()).clone()
         raw.requires_grad_(True)
         optimizer = torch.optim.Adam([raw], lr=lr)
-        best, best_gap = raw.detach().clone(), float("inf")
+        best, best_loss = raw.detach().clone(), float("inf")
         for step in range(steps + 1):  # the last pass only scores the last step
-            gap = gap_of(s, raw, target)
-            if gap.item() < best_gap:
-                best, best_gap = raw.detach().clone(), gap.item()
+            value = loss_of(s, raw, mean, log_std)
+            if value.item() < best_loss:
+                best, best_loss = raw.detach().clone(), value.item()
             if step < steps:
                 optimizer.zero_grad(set_to_none=True)
-                gap.backward(inputs=[raw])
+                value.backward(inputs=[raw])
                 optimizer.step()
         if gaps is not None:
-            gaps.append(best_gap ** 0.5)
+            with torch.no_grad():
+                gaps.append((action_of(s, best) - mean).norm().item())
         previous[:] = [best]
         return torch.tanh(best).squeeze(0).double().cpu().numpy()
 
@@ -414,7 +431,7 @@ class RATTrainer:
         if refine and cfg.refine_steps:
             target = intention if intention is not None else self.objective().intention
             return refined_function(self.adversary, target, self.victim, cfg.threat, cfg.refine_steps, cfg.refine_lr,
-                                    gaps)
+                                    gaps, loss=cfg.refine_loss, victim_std=cfg.victim_std, kl_form=cfg.kl_form)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
@@ -607,10 +624,10 @@ def load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, d
 
 
 def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
-                    gaps: list[float] | None = None) -> Perturbation:
+                    gaps: list[float] | None = None, refine_loss: str | None = None) -> Perturbation:
     """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
-    Adam steps per observation (None: as the run was configured; 0: the network's Δ alone). ``gaps``, if
-    given, receives the gap refinement leaves at each observation."""
+    Adam steps per observation minimising ``refine_loss`` (None: as the run was configured; 0 steps: the
+    network's Δ alone). ``gaps``, if given, receives the gap refinement leaves at each observation."""
     adversary, intention, meta = load_saved(run)
     cfg = meta.get("rat", {})
     steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
@@ -624,7 +641,10 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if is_sequence(victim):
         raise RatError("refine-steps works on memoryless victims only; evaluate this attack without refinement")
     return refined_function(adversary, intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
-                            cfg.get("refine_lr", RATConfig.refine_lr), gaps)
+                            cfg.get("refine_lr", RATConfig.refine_lr), gaps,
+                            loss=refine_loss or cfg.get("refine_loss", RATConfig.refine_loss),
+                            victim_std=cfg.get("victim_std", RATConfig.victim_std),
+                            kl_form=cfg.get("kl_form", RATConfig.kl_form))
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))

@@ -60,22 +60,24 @@ def train_attack(method: str, setup: AttackSetup, config, out: str | Path) -> At
 
 
 def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
-                          progress: bool = True, video_episodes=2, refine_steps: int | None = None) -> dict:
+                          progress: bool = True, video_episodes=2, refine_steps: int | None = None,
+                          refine_loss: str | None = None) -> dict:
     """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim.
 
-    ``refine_steps`` (RAT only) overrides the run's refinement of Δ towards π_θ (0: the network's Δ alone).
+    ``refine_steps`` and ``refine_loss`` (RAT only) override the run's refinement of Δ towards π_θ (0 steps:
+    the network's Δ alone).
     """
     meta = saved_attack_meta(run)
     if "victim" not in meta or "task" not in meta:
         raise RatError(f"the attack in '{run}' does not record its victim and task (trained from Python with a "
                        "victim object, or its adversary.json was edited); evaluate it with rat.attacks.evaluate_attack")
-    if refine_steps is not None and meta.get("method", "rat") != "rat":
-        raise RatError(f"--refine-steps refines a RAT adversary towards its intention policy; '{run}' is a "
-                       f"{meta['method']} attack: drop --refine-steps")
+    if (refine_steps is not None or refine_loss is not None) and meta.get("method", "rat") != "rat":
+        raise RatError(f"--refine-steps and --refine-loss refine a RAT adversary towards its intention policy; "
+                       f"'{run}' is a {meta['method']} attack: drop them")
     victim = load_victim(meta["victim"])
     gaps: list[float] = []  # the gap a refined RAT attack leaves to π_θ's action, per observation
     if meta.get("method", "rat") == "rat":  # the run, or one adversary saved in it (adversary-last[.json])
-        perturbation = load_rat_attack(saved_attack_path(run), victim, refine_steps, gaps)
+        perturbation = load_rat_attack(saved_attack_path(run), victim, refine_steps, gaps, refine_loss)
     else:
         perturbation, meta = load_attack(run, victim)
     target = get_target(meta["target"])
