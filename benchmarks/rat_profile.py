@@ -4,8 +4,8 @@
 
 Each component is timed as the RAT loop runs it (median of repeats after a warm-up), then scaled
 to its frequency per 1,000 steps: 1,000 environment steps with the victim's or intention
-policy's action, 1,000 intention-SAC updates, 100 adversary updates (10 every 100 steps), one
-weighting update per 1,000 steps, and one reward round (training plus relabelling) every 5,000.
+policy's action, 1,000 intention-SAC updates, the adversary and weighting updates the preset schedules
+(for `reach`: 100 and one), and one reward round (training plus relabelling) every 5,000.
 The timed round trains on all ``--labels`` labels at once, as the run's last round does: the
 costliest round, so the reward model's share is an upper bound.
 """

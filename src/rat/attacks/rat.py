@@ -55,6 +55,7 @@ from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
 REFINE_LOSSES = ("l2", "kl")  #: what refinement at attack time minimises (RATConfig.refine_loss)
+ANCHORS = ("clean", "attacked")  #: which victim action the intention anchor pulls towards (RATConfig.anchor_to)
 
 
 @dataclass(frozen=True)
@@ -118,8 +119,8 @@ class RATConfig:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
         if self.intention_anchor < 0:
             raise RatError(f"intention-anchor must be ≥ 0, got {self.intention_anchor}")
-        if self.anchor_to not in ("clean", "attacked"):
-            raise RatError(f"anchor-to must be clean or attacked, got '{self.anchor_to}'")
+        if self.anchor_to not in ANCHORS:
+            raise RatError(f"anchor-to must be {' or '.join(ANCHORS)}, got '{self.anchor_to}'")
         if self.intention_anchor and self.pebble.oracle:
             raise RatError("intention-anchor shapes the learned reward r̂, which an oracle run does not learn; "
                            "leave it at 0 for an oracle run")
@@ -634,6 +635,9 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if steps < 0:
         raise RatError(f"refine-steps must be ≥ 0, got {steps}")
     if not steps:
+        if refine_loss is not None:  # asked for, but nothing would be refined: say so rather than ignore it
+            raise RatError(f"refine-loss '{refine_loss}' chooses what refinement minimises, and '{run}' refines "
+                           "0 steps; give --refine-steps N (N > 0) with it")
         return adversary_function(adversary)
     if intention is None:
         raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
