@@ -1,11 +1,13 @@
 """Where a RAT run's time goes, per 1,000 environment steps, with the `cpu` preset.
 
-    python benchmarks/rat_profile.py [--labels 9000] [--victim zoo:faucet-close-v3] > benchmarks/rat_profile.md
+    python benchmarks/rat_profile.py [--labels 9000] [--victim zoo:faucet-close-v3] [--target reach] > benchmarks/rat_profile.md
 
 Each component is timed as the RAT loop runs it (median of repeats after a warm-up), then scaled
 to its frequency per 1,000 steps: 1,000 environment steps with the victim's or intention
 policy's action, 1,000 intention-SAC updates, the adversary and weighting updates the preset schedules
-(for `reach`: 100 and one), and one reward round (training plus relabelling) every 5,000.
+(for `reach`: 100 and one), and one reward round (training plus relabelling) every 5,000. A sequence
+victim (a Decision Transformer) is timed with full-length contexts: the stored ones are a fresh
+episode's, all padding, which costs the model the same as a full history.
 The timed round trains on all ``--labels`` labels at once, as the run's last round does: the
 costliest round, so the reward model's share is an upper bound.
 """
@@ -43,19 +45,21 @@ def main() -> None:
     parser.add_argument("--labels", type=int, default=9000, help="labels held in the timed reward round "
                         "(the paper's 9,000 for a manipulation row)")
     parser.add_argument("--victim", default="zoo:faucet-close-v3")
+    parser.add_argument("--target", default="reach")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
     cfg = rat_config("cpu", budget=args.labels)
-    setup = attack_setup(args.victim, "reach", cfg.threat, progress=False)
+    setup = attack_setup(args.victim, args.target, cfg.threat, progress=False)
     env, target = setup.make_env(0), setup.target
     tmp = tempfile.mkdtemp()
     rat = RATTrainer(cfg, setup, env, LabelStore(f"{tmp}/labels.sqlite"), "profile", Path(tmp) / "snapshots")
     learner, rng = rat.learner, rat.rng
 
     obs, _ = env.reset(seed=0)
+    env.action_space.seed(0)
     for _ in range(10_000):  # fill the buffer and history with real transitions
-        action = rng.uniform(-1, 1, 4)
+        action = env.action_space.sample()
         nxt, _, term, trunc, info = env.step(action)
         learner.buffer.add(obs, action, 0.0, nxt, term)
         learner.history.add(obs, action, target.reward(obs, action, nxt, info), term or trunc)
@@ -92,9 +96,9 @@ def main() -> None:
          "member, relabel 10k)"] = timed(reward_round, 1, 0) / 5
     total = sum(rows.values())
     print("# Where the time goes: RAT, `cpu` preset, per 1,000 environment steps\n")
-    print(f"Measured by `python benchmarks/rat_profile.py --labels {args.labels} --victim {args.victim}` on this "
-          "project's 2-core CPU machine, torch on one")
-    print("thread, target `reach` (medians after warm-up; the machine is shared and noisy).\n")
+    print(f"Measured by `python benchmarks/rat_profile.py --labels {args.labels} --victim {args.victim} --target "
+          f"{args.target}` on this project's 2-core CPU machine, torch on one")
+    print("thread (medians after warm-up; the machine is shared and noisy).\n")
     print("| component | seconds per 1,000 steps | share |")
     print("| --- | ---: | ---: |")
     for name, sec in rows.items():

@@ -141,6 +141,56 @@ def test_a_pytorch_bin_loads_only_as_tensors_and_bad_directories_are_one_line(sa
         load_decision_transformer(tmp_path / "other")
 
 
+def test_the_split_forward_gives_the_models_actions_and_gradients_and_a_model_it_cannot_match_runs_whole():
+    torch.manual_seed(2)  # two layers, two heads, the layer-scaled attention variant
+    config = transformers.DecisionTransformerConfig(state_dim=OBS, act_dim=ACT, hidden_size=16, max_ep_len=50, n_layer=2,
+                                                    n_head=2, n_positions=64, action_tanh=True,
+                                                    scale_attn_by_inverse_layer_idx=True)
+    spaces = (gym_box(OBS), gym_box(ACT, 1.0))
+
+    def trained_like():  # attention as peaked as a trained model's (at initialisation it is nearly uniform)
+        model = transformers.DecisionTransformerModel(config)
+        with torch.no_grad():
+            for block in model.encoder.h:
+                block.attn.c_attn.weight.mul_(10.0)
+        return model
+
+    victim = DecisionTransformerVictim(trained_like(), *spaces, MEAN, STD, 100.0, context_length=K)
+    assert victim.split  # the self-check at construction passed
+    context, rng = victim.initial_context(6), np.random.default_rng(4)
+    for _ in range(2):  # a young context: part of it is padding
+        obs = torch.as_tensor(rng.normal(size=(6, OBS)), dtype=torch.float32)
+        context = victim.update_context(context, obs, victim.act(obs, context).detach(), torch.ones(6))
+    obs = torch.tensor(rng.normal(size=(6, OBS)), dtype=torch.float32, requires_grad=True)
+    derivatives = []
+    for split in (True, False):
+        victim.split = split
+        action = victim.act(obs, context)
+        (grad,) = torch.autograd.grad(action.pow(2).sum(), obs, create_graph=True)
+        (second,) = torch.autograd.grad(grad.pow(2).sum(), obs)  # the weighting network's hypergradient needs it
+        derivatives.append((action, grad, second))
+    for split, whole in zip(*derivatives):
+        torch.testing.assert_close(split, whole, atol=1e-5, rtol=1e-4)
+    assert derivatives[0][1].abs().sum() > 0
+
+    class Misread(DecisionTransformerVictim):  # a split forward that gets the attention scale wrong
+        def _attention_scale(self, layer, head_dim):
+            return 1.0
+
+    misread = Misread(trained_like(), *spaces, MEAN, STD, 100.0, context_length=K)
+    assert not misread.split  # the check caught it: the whole model runs, and acts as the model does
+    inputs = misread._inputs(obs.detach(), context)
+    with torch.no_grad():
+        torch.testing.assert_close(misread.act(obs.detach(), context), misread._model_action(*inputs).clamp(-1, 1))
+        assert not torch.allclose(misread._split_action(*inputs), misread._model_action(*inputs), atol=1e-4)
+
+
+def gym_box(size, bound=np.inf):
+    import gymnasium as gym
+
+    return gym.spaces.Box(-bound, bound, (size,), np.float32)
+
+
 def test_a_batch_of_observations_shares_one_episodes_context(saved):
     _, directory = saved
     victim = load_decision_transformer(directory)

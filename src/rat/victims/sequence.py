@@ -107,6 +107,7 @@ class DecisionTransformerVictim(nn.Module):
         self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
         obs_dim, act_dim, past = observation_space.shape[0], action_space.shape[0], context_length - 1
         self._widths = (past * obs_dim, past * act_dim, context_length, context_length, past)
+        self.split = self._split_matches_model()
 
     def train(self, mode: bool = True) -> "DecisionTransformerVictim":
         return super().train(False)  # dropout would make the victim stochastic
@@ -129,19 +130,100 @@ class DecisionTransformerVictim(nn.Module):
             context = self.initial_context(batch)
         if context.states.shape[0] != batch:
             context = context.repeat(batch)
+        inputs = self._inputs(obs, context)
+        action = self._split_action(*inputs) if self.split else self._model_action(*inputs)
+        return torch.max(torch.min(action, self.high), self.low)
+
+    def _inputs(self, obs: torch.Tensor, context: DTContext) -> tuple[torch.Tensor, ...]:
+        """The model's inputs over the K steps, as in training: normalised states, padding zeroed and masked."""
+        batch = obs.shape[0]
         mask = torch.cat([context.mask, torch.ones(batch, 1, device=obs.device)], 1)  # [B, K]; padding is 0
         states = (torch.cat([context.states, obs.unsqueeze(1)], 1) - self.state_mean) / self.state_std
         placeholder = torch.zeros(batch, 1, self.action_space.shape[0], device=obs.device)  # not yet taken
         actions = torch.cat([context.actions, placeholder], 1)
         rtg = context.returns_to_go / self.return_scale
-        timesteps = context.timesteps.clamp(max=self.max_timestep)
+        timesteps = (context.timesteps.clamp(max=self.max_timestep) * mask).long()
+        return states * mask.unsqueeze(-1), actions * mask.unsqueeze(-1), (rtg * mask).unsqueeze(-1), timesteps, mask
+
+    def _model_action(self, states, actions, rtg, timesteps, mask) -> torch.Tensor:
+        """The action as the library's ``DecisionTransformerModel.forward`` computes it (every token at once)."""
         _, action_preds, _ = self.model(
-            states=states * mask.unsqueeze(-1), actions=actions * mask.unsqueeze(-1),
-            rewards=torch.zeros(batch, self.context_length, 1, device=obs.device),
-            returns_to_go=(rtg * mask).unsqueeze(-1), timesteps=(timesteps * mask).long(),
+            states=states, actions=actions, rewards=torch.zeros_like(rtg), returns_to_go=rtg, timesteps=timesteps,
             attention_mask=mask.long(), return_dict=False)
-        action = action_preds[:, -1]
-        return torch.max(torch.min(action, self.high), self.low)
+        return action_preds[:, -1]
+
+    def _split_action(self, states, actions, rtg, timesteps, mask) -> torch.Tensor:
+        """The same action, with the past computed once, without gradients, and only the current state token after.
+
+        The model is causal: the tokens before the current state (the K − 1 past steps and the coming
+        return-to-go) do not depend on the current observation, so their keys and values are taken from
+        one gradient-free pass, and the current state's token alone runs through the blocks with
+        gradients. An attacker's gradient (and the weighting network's second-order one) is the same as
+        through the whole model at about half the cost; :meth:`_split_matches_model` checks the two agree.
+        """
+        model, encoder = self.model, self.model.encoder
+        hidden = model.hidden_size
+        with torch.no_grad():
+            past_tokens = self._tokens(states, actions, rtg, timesteps)[:, :-2]  # up to the coming return-to-go
+            past_mask = mask.repeat_interleave(3, dim=1)[:, :-2]
+            qkv = []
+            hooks = [block.attn.c_attn.register_forward_hook(lambda _m, _i, out: qkv.append(out)) for block in encoder.h]
+            try:
+                encoder(inputs_embeds=past_tokens, attention_mask=past_mask.long(),
+                        position_ids=torch.zeros_like(past_mask, dtype=torch.long))
+            finally:
+                for hook in hooks:
+                    hook.remove()
+        x = model.embed_ln(model.embed_state(states[:, -1:]) + model.embed_timestep(timesteps[:, -1:]))
+        x = x + encoder.wpe(torch.zeros_like(timesteps[:, -1:]))  # every token sits at position 0 in the DT
+        blocked = torch.cat([past_mask, torch.ones_like(mask[:, :1])], 1) == 0  # [B, T]
+        heads = model.config.n_head
+        for layer, (block, past) in enumerate(zip(encoder.h, qkv)):
+            _, past_keys, past_values = past.split(hidden, dim=2)
+            query, key, value = block.attn.c_attn(block.ln_1(x)).split(hidden, dim=2)
+            split = lambda t: t.reshape(t.shape[0], t.shape[1], heads, -1).transpose(1, 2)  # noqa: E731 [B, h, T, d]
+            query, keys, values = split(query), split(torch.cat([past_keys, key], 1)), split(torch.cat([past_values, value], 1))
+            scores = (query @ keys.transpose(-1, -2)) * self._attention_scale(layer, query.shape[-1])
+            scores = scores.masked_fill(blocked[:, None, None, :], torch.finfo(scores.dtype).min)
+            attended = (scores.softmax(-1) @ values).transpose(1, 2).reshape(x.shape)
+            x = x + block.attn.c_proj(attended)
+            x = x + block.mlp(block.ln_2(x))
+        return model.predict_action(encoder.ln_f(x))[:, 0]
+
+    def _tokens(self, states, actions, rtg, timesteps) -> torch.Tensor:
+        """The interleaved (return-to-go, state, action) token embeddings, ``[B, 3K, hidden]``, as the model makes them."""
+        model, (batch, steps) = self.model, states.shape[:2]
+        time = model.embed_timestep(timesteps)
+        tokens = torch.stack([model.embed_return(rtg) + time, model.embed_state(states) + time,
+                              model.embed_action(actions) + time], dim=2)
+        return model.embed_ln(tokens.reshape(batch, 3 * steps, model.hidden_size))
+
+    def _attention_scale(self, layer: int, head_dim: int) -> float:
+        config = self.model.config
+        scale = head_dim ** -0.5 if getattr(config, "scale_attn_weights", True) else 1.0
+        return scale / (layer + 1) if getattr(config, "scale_attn_by_inverse_layer_idx", False) else scale
+
+    def _split_matches_model(self) -> bool:
+        """Whether :meth:`_split_action` reproduces the model's own forward on a random context (else it is not used).
+
+        It re-implements the GPT-2 blocks' attention for one token; a model whose blocks compute
+        something else (another library version, another attention variant) falls back to the full forward.
+        """
+        generator = torch.Generator().manual_seed(0)
+        obs_dim, act_dim = self.observation_space.shape[0], self.action_space.shape[0]
+        context = self.initial_context(3)
+        try:
+            with torch.no_grad():
+                for step in range(self.context_length + 1):  # fills the context, then slides it
+                    obs = torch.randn(3, obs_dim, generator=generator).to(self.state_mean.device) * self.state_std + self.state_mean
+                    inputs = self._inputs(obs, context)
+                    if not torch.allclose(self._split_action(*inputs), self._model_action(*inputs), atol=1e-5, rtol=1e-4):
+                        return False
+                    action = torch.rand(3, act_dim, generator=generator).to(obs.device) * 2 - 1
+                    context = self.update_context(context, obs, action, torch.randn(3, generator=generator))
+        except (AttributeError, RuntimeError, TypeError, ValueError):
+            return False
+        return True
 
     forward = act
 
