@@ -30,6 +30,7 @@ def test_a_grid_resumes_without_rerunning_finished_cells(tmp_path):
     first = run_grid(random_cells([0, 1]), SMOKE, tmp_path, jobs=2, echo=said.append, heartbeat=0.2)
     assert len(first["ran"]) == 2 and not first["failed"]
     assert any(line.startswith("running:") for line in said)  # a quiet grid still says it is alive
+    assert sum("min of training over every session" in line for line in said) == 2  # a resumed cell's time in all
     stamps = {c.key: (c.directory(tmp_path) / "result.json").stat().st_mtime_ns for c in random_cells([0, 1])}
     second = run_grid(random_cells([0, 1, 2]), SMOKE, tmp_path, jobs=1, echo=lambda _: None)
     assert sorted(second["skipped"]) == sorted(stamps) and [r["seed"] for r in second["ran"]] == [2]

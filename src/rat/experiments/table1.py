@@ -229,7 +229,8 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
                 echo("running: " + "; ".join(running) if running else "running: no cell has logged lately")
                 continue
             (failed if "error" in row else ran).append(row)
-            status = row.get("error") or f"{100 * row['attack_success_rate']:.1f}% in {row['minutes']} min"
+            status = row.get("error") or (f"{100 * row['attack_success_rate']:.1f}% in {row['minutes']} min here "
+                                          f"({row['train_minutes']} min of training over every session)")
             echo(f"[{len(ran) + len(failed)}/{len(todo)}] {Cell(row['task'], row['scenario'], row['method'], row['seed']).key}: {status}")
     rows = [r for c in cells if (r := finished(c, out)) is not None]
     write_reports(out, rows, preset)
