@@ -156,7 +156,7 @@ def test_the_split_forward_gives_the_models_actions_and_gradients_and_a_model_it
         return model
 
     victim = DecisionTransformerVictim(trained_like(), *spaces, MEAN, STD, 100.0, context_length=K)
-    assert victim.split  # the self-check at construction passed
+    assert victim.split_forward  # the self-check at construction passed
     context, rng = victim.initial_context(6), np.random.default_rng(4)
     for _ in range(2):  # a young context: part of it is padding
         obs = torch.as_tensor(rng.normal(size=(6, OBS)), dtype=torch.float32)
@@ -164,7 +164,7 @@ def test_the_split_forward_gives_the_models_actions_and_gradients_and_a_model_it
     obs = torch.tensor(rng.normal(size=(6, OBS)), dtype=torch.float32, requires_grad=True)
     derivatives = []
     for split in (True, False):
-        victim.split = split
+        victim.split_forward = split
         action = victim.act(obs, context)
         (grad,) = torch.autograd.grad(action.pow(2).sum(), obs, create_graph=True)
         (second,) = torch.autograd.grad(grad.pow(2).sum(), obs)  # the weighting network's hypergradient needs it
@@ -178,7 +178,7 @@ def test_the_split_forward_gives_the_models_actions_and_gradients_and_a_model_it
             return 1.0
 
     misread = Misread(trained_like(), *spaces, MEAN, STD, 100.0, context_length=K)
-    assert not misread.split  # the check caught it: the whole model runs, and acts as the model does
+    assert not misread.split_forward  # the check caught it: the whole model runs, and acts as the model does
     inputs = misread._inputs(obs.detach(), context)
     with torch.no_grad():
         torch.testing.assert_close(misread.act(obs.detach(), context), misread._model_action(*inputs).clamp(-1, 1))

@@ -11,6 +11,9 @@ last K steps of (return-to-go, state, action) and predicts the next action. As a
 - ``update_context(context, obs, action, reward)`` records the step: the state *as the victim saw
   it*, the action it took, and the return-to-go lowered by the true reward.
 
+The model is causal, so only the current state's token depends on the current observation; the victim
+runs the tokens before it without gradients and that one token with them (:meth:`DecisionTransformerVictim._split_action`).
+
 The threat model for a sequence victim: each observation is perturbed once, when it is seen,
 and the perturbed state stays in the context — the victim never sees the true state of a past
 step, because it never saw it. An attacker does not get to rewrite the past; what it changes is
@@ -107,7 +110,7 @@ class DecisionTransformerVictim(nn.Module):
         self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
         obs_dim, act_dim, past = observation_space.shape[0], action_space.shape[0], context_length - 1
         self._widths = (past * obs_dim, past * act_dim, context_length, context_length, past)
-        self.split = self._split_matches_model()
+        self.split_forward = self._split_matches_model()  #: see _split_action
 
     def train(self, mode: bool = True) -> "DecisionTransformerVictim":
         return super().train(False)  # dropout would make the victim stochastic
@@ -131,7 +134,7 @@ class DecisionTransformerVictim(nn.Module):
         if context.states.shape[0] != batch:
             context = context.repeat(batch)
         inputs = self._inputs(obs, context)
-        action = self._split_action(*inputs) if self.split else self._model_action(*inputs)
+        action = self._split_action(*inputs) if self.split_forward else self._model_action(*inputs)
         return torch.max(torch.min(action, self.high), self.low)
 
     def _inputs(self, obs: torch.Tensor, context: DTContext) -> tuple[torch.Tensor, ...]:
