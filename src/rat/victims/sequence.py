@@ -219,7 +219,7 @@ class DecisionTransformerVictim(nn.Module):
         context = self.initial_context(3)
         try:
             with torch.no_grad():
-                for step in range(self.context_length + 1):  # fills the context, then slides it
+                for _ in range(self.context_length + 1):  # fills the context, then slides it
                     obs = torch.randn(3, obs_dim, generator=generator).to(self.state_mean.device) * self.state_std + self.state_mean
                     inputs = self._inputs(obs, context)
                     if not torch.allclose(self._split_action(*inputs), self._model_action(*inputs), atol=1e-5, rtol=1e-4):
