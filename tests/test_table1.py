@@ -38,6 +38,9 @@ def test_a_grid_resumes_without_rerunning_finished_cells(tmp_path):
     with open(tmp_path / "results.csv") as f:
         rows = list(csv.DictReader(f))
     assert [int(r["seed"]) for r in rows] == [0, 1, 2] and all(r["preset"] == "smoke" for r in rows)
+    run_grid(random_cells([2]), SMOKE, tmp_path, echo=lambda _: None)  # a call for one cell keeps the others' rows
+    with open(tmp_path / "results.csv") as f:
+        assert [int(r["seed"]) for r in csv.DictReader(f)] == [0, 1, 2]
     assert all(r["victim"] == "zoo:drawer-open-v3" and r["victim_method"].startswith("sac") for r in rows)
     assert all(0 <= float(r["clean_success_rate"]) <= 1 for r in rows)  # the unattacked victim, the yardstick
     assert all(r["refined_gap"] == "" for r in rows)  # the column is there; only a refined RAT cell fills it

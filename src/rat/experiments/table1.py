@@ -73,6 +73,11 @@ class Cell:
     def directory(self, out: Path) -> Path:
         return Path(out) / "cells" / self.key
 
+    @classmethod
+    def from_key(cls, key: str) -> "Cell":
+        task, scenario, method, seed = key.rsplit("/", 3)  # a task may hold a slash (dt/halfcheetah-v5)
+        return cls(task, scenario, method, int(seed.removeprefix("seed")))
+
     def label_source(self) -> "Cell":
         """The RAT cell whose labels a preference-based baseline learns from."""
         return Cell(self.task, self.scenario, "rat", self.seed)
@@ -197,6 +202,8 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
              echo: Callable[[str], None] = print, heartbeat: float = 300.0, plugins: tuple[str, ...] = ()) -> dict:
     """Run every unfinished cell (RAT cells before the baselines that read their labels) and write the reports.
 
+    The reports (``results.csv``, ``table1.md``, curves) cover every finished cell the directory's grid
+    has held (``grid.json``), so a grid can grow one method or seed at a time.
     Every ``heartbeat`` seconds without a finished cell, ``echo`` gets the step each running cell has reached.
     ``plugins`` (see :mod:`rat.plugins`) are imported in every process that runs cells.
     Returns ``{"ran": [...], "skipped": [...], "failed": [...], "rows": [...]}``.
@@ -232,7 +239,8 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
             status = row.get("error") or (f"{100 * row['attack_success_rate']:.1f}% in {row['minutes']} min here "
                                           f"({row['train_minutes']} min of training over every session)")
             echo(f"[{len(ran) + len(failed)}/{len(todo)}] {Cell(row['task'], row['scenario'], row['method'], row['seed']).key}: {status}")
-    rows = [r for c in cells if (r := finished(c, out)) is not None]
+    # the reports cover every cell this directory's grid has held, not only this call's
+    rows = [r for key in record["cells"] if (r := finished(Cell.from_key(key), out)) is not None]
     write_reports(out, rows, preset)
     return {"ran": ran, "skipped": skipped, "failed": failed, "rows": rows}
 
