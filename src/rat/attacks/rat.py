@@ -449,7 +449,10 @@ class RATTrainer:
         save_checkpoint(self.snapshots / f"adversary-{self.step}", "adversary-snapshot",
                         {"adversary": self.adversary.state_dict(), "intention": self.objective().intention.state_dict()},
                         {"step": self.step})
-        kept = self.keep_best_intention() if self.config.imitate == "best" and self.learner.reward_ready else {}
+        # π_θ is a candidate once it has learnt from r̂: at the first query round it is still the pre-training
+        # explorer, which a young r̂ can score above the learning π_θ for tens of thousands of steps
+        learning = self.learner.reward_ready and self.step > self.config.pebble.warm_up
+        kept = self.keep_best_intention() if self.config.imitate == "best" and learning else {}
         return {"eval_success_rate": res.result.success_rate, **self.counters, **kept}
 
     def state_dict(self) -> dict:
