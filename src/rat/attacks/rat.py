@@ -84,7 +84,7 @@ class RATConfig:
     eval_episodes: int = 10  #: episodes per evaluation during training
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
     select: str = "last"  #: "last" adversary (the paper's), or the snapshot whose attack scores best under r̂ ("reward")
-    imitate: str = "current"  #: the adversary imitates the "current" π_θ (the paper's), or the "best" so far under r̂
+    imitate: str = "current"  #: the adversary imitates the "current" π_θ (the paper's), or the "best" so far under r̂ (kept from the first evaluation after π_θ learns from r̂)
     imitate_episodes: int = 3  #: π_θ's episodes per evaluation that score it under r̂ (imitate="best")
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
