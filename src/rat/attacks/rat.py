@@ -58,6 +58,12 @@ REFINE_LOSSES = ("l2", "kl")  #: what refinement at attack time minimises (RATCo
 ANCHORS = ("clean", "attacked")  #: which victim action the intention anchor pulls towards (RATConfig.anchor_to)
 
 
+def check_refine_loss(loss: str) -> None:
+    """One line naming the choices, for a refinement loss that is not one of them."""
+    if loss not in REFINE_LOSSES:
+        raise RatError(f"refine-loss must be one of {', '.join(REFINE_LOSSES)}, got '{loss}'")
+
+
 @dataclass(frozen=True)
 class RATConfig:
     """A RAT attack (defaults: the paper's, with the released schedule of ``docs/design.md`` §5)."""
@@ -113,8 +119,7 @@ class RATConfig:
         if self.weighting_norm == "batch" and self.hypergradient == "batch-mean":
             raise RatError("weighting-norm=batch needs hypergradient=exact: the batch-mean approximation moves only "
                            "the weights' mean, which normalised weights ignore")
-        if self.refine_loss not in REFINE_LOSSES:
-            raise RatError(f"refine-loss must be one of {', '.join(REFINE_LOSSES)}, got '{self.refine_loss}'")
+        check_refine_loss(self.refine_loss)
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
         if self.intention_anchor < 0:
@@ -186,8 +191,7 @@ def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim:
     Memoryless victims only (a sequence victim's context is not passed). ``gaps``, if given, receives the
     gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ left at each observation (whichever loss chose Δ).
     """
-    if loss not in REFINE_LOSSES:
-        raise RatError(f"refine-loss must be one of {', '.join(REFINE_LOSSES)}, got '{loss}'")
+    check_refine_loss(loss)
     device = next(adversary.parameters()).device
     previous: list[torch.Tensor] = []  # the last Δ chosen, before tanh
 

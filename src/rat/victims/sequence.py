@@ -183,10 +183,10 @@ class DecisionTransformerVictim(nn.Module):
         x = x + encoder.wpe(torch.zeros_like(timesteps[:, -1:]))  # every token sits at position 0 in the DT
         blocked = torch.cat([past_mask, torch.ones_like(mask[:, :1])], 1) == 0  # [B, T]
         heads = model.config.n_head
+        split = lambda t: t.reshape(t.shape[0], t.shape[1], heads, -1).transpose(1, 2)  # noqa: E731 [B, h, T, d]
         for layer, (block, past) in enumerate(zip(encoder.h, qkv)):
             _, past_keys, past_values = past.split(hidden, dim=2)
             query, key, value = block.attn.c_attn(block.ln_1(x)).split(hidden, dim=2)
-            split = lambda t: t.reshape(t.shape[0], t.shape[1], heads, -1).transpose(1, 2)  # noqa: E731 [B, h, T, d]
             query, keys, values = split(query), split(torch.cat([past_keys, key], 1)), split(torch.cat([past_values, value], 1))
             scores = (query @ keys.transpose(-1, -2)) * self._attention_scale(layer, query.shape[-1])
             scores = scores.masked_fill(blocked[:, None, None, :], torch.finfo(scores.dtype).min)
