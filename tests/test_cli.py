@@ -178,6 +178,21 @@ def test_attack_bad_inputs(capsys, tmp_path):
     assert_user_error(*run(capsys, "attack", "train", "--budget", "-3", "--out", str(tmp_path / "c"))[::2],
                       "budget must not be negative")
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path))[::2], "no checkpoint at")
+    # a zero label budget is an error for a run that learns from labels, before anything is written; an oracle
+    # run needs no labels, and its configuration (built before the setup says oracle) takes the zero
+    assert_user_error(*run(capsys, "attack", "train", "--budget", "0", "--out", str(tmp_path / "d"))[::2],
+                      "the label budget is 0", "--reward oracle")
+    assert not (tmp_path / "d").exists()
+    from dataclasses import replace
+    from rat.experiments.presets import rat_config
+    from rat.attacks.rat import RAT
+    from rat.experiments.runner import attack_setup
+    oracle = RAT.configure(attack_setup("zoo:drawer-open-v3", "reach", reward="oracle", progress=False),
+                           rat_config("cpu", budget=0))
+    assert oracle.pebble.oracle and oracle.pebble.budget == 0
+    oracle.pebble.check_budget("RAT")
+    with pytest.raises(RatError, match="label budget is 0"):
+        replace(oracle.pebble, oracle=False).check_budget("RAT")
 
 
 @pytest.mark.slow

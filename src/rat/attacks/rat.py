@@ -496,6 +496,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     Returns the report (also in ``out/report.json``); the adversary is ``out/adversary.*``.
     """
     cfg, target = config, setup.target
+    cfg.pebble.check_budget("RAT")  # here, not in RATConfig: an oracle run's zero budget is fine, and only the setup says oracle
     env = setup.make_env(cfg.seed)  # checked before the run directory exists, so a mistake leaves nothing behind
     cfg = replace(cfg, horizon=cfg.horizon or episode_length(env))  # recorded as used
     task = setup.describe.get("task")

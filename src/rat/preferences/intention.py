@@ -57,6 +57,7 @@ class IntentionConfig:
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
         self.pebble.check_steps(self.total_steps, "the intention policy")
+        self.pebble.check_budget("the intention policy")
 
 
 @dataclass

@@ -85,12 +85,18 @@ class PebbleConfig:
 
     def check_steps(self, total_steps: int, what: str) -> None:
         """A one-line error if ``total_steps`` end before the first query round, when nothing would be learnt."""
-        if total_steps <= self.warm_up or (self.budget == 0 and not self.oracle):
+        if total_steps <= self.warm_up:
             raise RatError(f"{total_steps} steps end before {what} learns anything: the first labels come at step "
-                           f"{self.warm_up} (seed steps {self.seed_steps} + pre-training {self.unsupervised_steps})"
-                           f"{' and the label budget is 0' if self.budget == 0 and not self.oracle else ''}; give "
-                           f"--steps > {self.warm_up}, a shorter warm-up (--seed-steps, --pretrain-steps) or "
+                           f"{self.warm_up} (seed steps {self.seed_steps} + pre-training {self.unsupervised_steps}); "
+                           f"give --steps > {self.warm_up}, a shorter warm-up (--seed-steps, --pretrain-steps) or "
                            "--preset smoke")
+
+    def check_budget(self, what: str) -> None:
+        """A one-line error if a run that learns from labels may ask none (an oracle run needs none). Called
+        where the reward source is final: a RAT configuration learns it from the attack's setup."""
+        if self.budget == 0 and not self.oracle:
+            raise RatError(f"{what} learns from preference labels and the label budget is 0; give --budget > 0, "
+                           "or --reward oracle to learn from the true target reward")
 
     @property
     def schedule(self) -> FeedbackSchedule:
