@@ -171,6 +171,37 @@ def test_a_round_can_be_capped_in_gradient_steps_whatever_the_labels_held():
     assert uncapped.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, y, rng)["reward_updates"] == 32
 
 
+def test_standardised_inputs_make_r_hat_blind_to_each_features_units_and_survive_a_checkpoint():
+    rng = np.random.default_rng(0)
+    pairs = synthetic_pairs(300, rng)
+    y = ScriptedTeacher().label(pairs, rng).y
+    scale, shift = np.array([0.1, 1.0, 50.0, 1.0], np.float32), np.array([0.0, 100.0, 0.0, -3.0], np.float32)
+
+    def trained(normalize: bool, units: bool) -> RewardEnsemble:
+        torch.manual_seed(0)
+        ens = RewardEnsemble(4, 1, RewardModelConfig(hidden=16, layers=2, max_epochs=3, batch_size=64,
+                                                     normalize_inputs=normalize))
+        o0, o1 = (o * scale + shift if units else o for o in (pairs.obs0, pairs.obs1))
+        ens.train_round(o0, pairs.act0, o1, pairs.act1, y, np.random.default_rng(1))
+        return ens
+
+    probe = rng.normal(size=(50, 4)).astype(np.float32)
+    act = np.zeros((50, 1), np.float32)
+    plain, rescaled = trained(True, False), trained(True, True)
+    np.testing.assert_allclose(plain.r_hat(probe, act), rescaled.r_hat(probe * scale + shift, act), atol=2e-4)
+    flat = np.concatenate([pairs.obs0 * scale + shift, pairs.obs1 * scale + shift]).reshape(-1, 4)
+    np.testing.assert_allclose(rescaled.input_mean[:4].numpy(), flat.mean(0), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(rescaled.input_std[:4].numpy(), np.maximum(flat.std(0), RewardEnsemble.MIN_STD),
+                               rtol=1e-3)
+    assert rescaled.input_std[4] == RewardEnsemble.MIN_STD  # the action, constant here: floored, not divided by 0
+    raw = trained(False, False), trained(False, True)  # raw inputs: the units change what is learnt
+    assert np.abs(raw[0].r_hat(probe, act) - raw[1].r_hat(probe * scale + shift, act)).max() > 0.05
+    assert "input_mean" not in raw[0].state_dict()  # older checkpoints, without it, still load into a raw ensemble
+    restored = RewardEnsemble(4, 1, rescaled.config)
+    restored.load_state_dict(rescaled.state_dict())
+    np.testing.assert_array_equal(restored.r_hat(probe, act), rescaled.r_hat(probe, act))
+
+
 def test_reward_is_tanh_bounded_and_the_mean_of_members():
     ens = RewardEnsemble(3, 2, RewardModelConfig(hidden=8, layers=1))
     obs, act = np.random.default_rng(0).normal(size=(7, 3)) * 100, np.ones((7, 2))

@@ -1,7 +1,7 @@
 """The learned reward r̂_ψ: an ensemble of MLPs trained on preferences with Bradley–Terry.
 
-Each member maps ``s ‖ a`` through 3×256 LeakyReLU layers to one tanh-bounded reward; r̂ is the
-ensemble mean. A member's preference predictor is
+Each member maps ``s ‖ a`` (optionally standardised, ``normalize_inputs``) through 3×256 LeakyReLU
+layers to one tanh-bounded reward; r̂ is the ensemble mean. A member's preference predictor is
 
     P[σ¹ ≻ σ⁰] = exp Σ r̂(σ¹) / (exp Σ r̂(σ⁰) + exp Σ r̂(σ¹)) = sigmoid(Σ r̂(σ¹) − Σ r̂(σ⁰)),
 
@@ -32,6 +32,9 @@ class RewardModelConfig:
     max_epochs: int = 200  #: epochs per training round, at most
     max_updates: int | None = None  #: gradient steps per member per round, at most (None: no cap; rounds then grow with the labels)
     stop_accuracy: float = 0.97  #: stop a round once training accuracy exceeds this
+    #: standardise each input feature by its mean and spread over the labelled segments, refit every round
+    #: (a departure from PEBBLE, whose members see raw ``s ‖ a``; see :meth:`RewardEnsemble.fit_inputs`)
+    normalize_inputs: bool = False
 
 
 def bradley_terry_loss(return0: torch.Tensor, return1: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -53,15 +56,50 @@ class RewardEnsemble(nn.Module):
         self.optimizers = [torch.optim.Adam(n.parameters(), lr=config.lr) for n in self.nets]
         self.rounds = 0
         self.epochs_run = 0
+        if config.normalize_inputs:  # buffers, so checkpoints keep them; absent otherwise, so older ones still load
+            self.register_buffer("input_mean", torch.zeros(obs_dim + act_dim))
+            self.register_buffer("input_std", torch.ones(obs_dim + act_dim))
 
     @property
     def _device(self) -> torch.device:
         return next(self.parameters()).device
 
+    def _inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([obs, action], dim=-1)
+        return (x - self.input_mean) / self.input_std if self.config.normalize_inputs else x
+
+    @staticmethod
+    def _reward(net: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(net(x)).squeeze(-1)
+
     def member_rewards(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Rewards of every member, ``[members, ...]`` for inputs ``[..., dim]``."""
-        x = torch.cat([obs, action], dim=-1)
-        return torch.stack([torch.tanh(net(x)).squeeze(-1) for net in self.nets])
+        x = self._inputs(obs, action)
+        return torch.stack([self._reward(net, x) for net in self.nets])
+
+    #: the least spread a feature is divided by: a feature nearly constant over the labels (a goal slot, a
+    #: fixed quaternion) is not blown up where a later state moves it
+    MIN_STD = 1e-2
+
+    @torch.no_grad()
+    def fit_inputs(self, obs: list[np.ndarray], actions: list[np.ndarray]) -> None:
+        """Set the standardisation (``normalize_inputs``) from transitions: arrays ``[..., dim]``, paired in order
+        (a round passes both segments of every label so far).
+
+        The features of ``s ‖ a`` differ in scale by orders of magnitude (positions in metres, quaternions, the
+        gripper, actions in [−1, 1]); raw, the members are slow to resolve the centimetres a reward may turn
+        on. What it does to r̂ and to the attack: benchmarks/strength.md.
+        """
+        total, square, n = 0.0, 0.0, 0
+        for o, a in zip(obs, actions):
+            for i in range(0, len(o), 1024):  # in chunks: 9,000 labels' segments are 10⁶ rows
+                x = torch.as_tensor(np.concatenate([o[i:i + 1024], a[i:i + 1024]], -1), dtype=torch.float64)
+                x = x.reshape(-1, self.obs_dim + self.act_dim)
+                total, square, n = total + x.sum(0), square + (x * x).sum(0), n + len(x)
+        mean = total / n
+        std = (square / n - mean * mean).clamp_min(0.0).sqrt()
+        self.input_mean.copy_(mean.float())
+        self.input_std.copy_(std.float().clamp_min(self.MIN_STD))
 
     @torch.no_grad()
     def r_hat(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
@@ -86,6 +124,8 @@ class RewardEnsemble(nn.Module):
         correct for accuracy, as in B-Pref. Returns the round's metrics.
         """
         cfg = self.config
+        if cfg.normalize_inputs:  # every label so far, both segments
+            self.fit_inputs([obs0, obs1], [act0, act1])
         data = [torch.as_tensor(np.asarray(a, np.float32), device=self._device) for a in (obs0, act0, obs1, act1, y)]
         n = len(data[-1])
         updates = 0
@@ -99,8 +139,8 @@ class RewardEnsemble(nn.Module):
                 for start in range(0, batches * cfg.batch_size, cfg.batch_size):
                     idx = order[start:start + cfg.batch_size]
                     o0, a0, o1, a1, yy = (d[idx] for d in data)
-                    r0 = torch.tanh(net(torch.cat([o0, a0], -1))).squeeze(-1).sum(-1)
-                    r1 = torch.tanh(net(torch.cat([o1, a1], -1))).squeeze(-1).sum(-1)
+                    r0 = self._reward(net, self._inputs(o0, a0)).sum(-1)
+                    r1 = self._reward(net, self._inputs(o1, a1)).sum(-1)
                     loss = bradley_terry_loss(r0, r1, yy)
                     opt.zero_grad(set_to_none=True)
                     loss.backward()
