@@ -21,6 +21,7 @@ import numpy as np
 from safetensors import safe_open
 
 from rat.envs.targets import REACH_GOAL, REACH_RADIUS
+from rat.preferences.reward_model import reward_agreement
 
 SPANS = ((0, 10_000), (10_000, 30_000), (30_000, 50_000))
 SEGMENT = 50
@@ -45,12 +46,11 @@ def buffer_scores(run: Path) -> str:
     for lo, hi in SPANS:
         if lo < n:
             span = slice(lo, min(hi, n))
-            parts.append(f"per step {lo // 1000}k–{hi // 1000}k: {np.corrcoef(r_hat[span], true[span])[0, 1]:.2f}")
-    m = n // SEGMENT * SEGMENT
-    learned, actual = r_hat[:m].reshape(-1, SEGMENT).sum(1), true[:m].reshape(-1, SEGMENT).sum(1)
-    i, j = np.random.default_rng(0).integers(len(learned), size=(2, 20_000))
-    parts.append(f"segment returns: {np.corrcoef(learned, actual)[0, 1]:.2f}")
-    parts.append(f"random pairs ordered right: {np.mean((learned[i] > learned[j]) == (actual[i] > actual[j])):.3f}")
+            step_corr = reward_agreement(r_hat[span], true[span], SEGMENT)["step_corr"]
+            parts.append(f"per step {lo // 1000}k–{hi // 1000}k: {step_corr:.2f}")
+    scores = reward_agreement(r_hat, true, SEGMENT)
+    parts.append(f"segment returns: {scores['segment_corr']:.2f}")
+    parts.append(f"random pairs ordered right: {scores['pairs_ordered']:.3f}")
     return " | ".join(parts)
 
 

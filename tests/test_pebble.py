@@ -74,6 +74,24 @@ def test_after_a_round_every_stored_reward_is_the_learned_reward_and_the_critic_
                                                                                   learner.buffer.action[:n]), rtol=1e-5)
 
 
+def test_each_round_logs_how_r_hat_agrees_with_the_targets_reward_over_recent_episodes(tmp_path):
+    learner, env = make(tmp_path, tiny_config(budget=30))
+    obs = env.reset()
+    for _ in range(240):  # the first round comes at step 240, as the fourth 60-step episode ends
+        action = learner.act(obs)
+        next_obs, r, end = env.step(action)
+        metrics = learner.observe(obs, action, next_obs, r, terminated=False, truncated=end)
+        obs = env.reset() if end else next_obs
+    episodes = list(learner.history.episodes)
+    assert len(episodes) == 4 and {"reward_step_corr", "reward_segment_corr", "reward_pairs_ordered"} <= set(metrics)
+    learned = np.concatenate([learner.ensemble.r_hat(o, a) for o, a, _ in episodes])
+    true = np.concatenate([t for _, _, t in episodes])
+    assert metrics["reward_step_corr"] == pytest.approx(np.corrcoef(learned, true)[0, 1], abs=1e-6)
+    segments = [x.reshape(-1, 10).sum(1) for x in (learned, true)]
+    assert metrics["reward_segment_corr"] == pytest.approx(np.corrcoef(*segments)[0, 1], abs=1e-6)
+    assert 0.0 <= metrics["reward_pairs_ordered"] <= 1.0
+
+
 def test_pretraining_updates_use_the_intrinsic_reward(tmp_path):
     learner, env = make(tmp_path, tiny_config())
     drive(learner, env, 100)

@@ -10,7 +10,7 @@ from scipy import stats
 from rat.agents.exploration import RunningMeanStd, knn_distance, state_entropy_reward
 from rat.errors import RatError
 from rat.preferences.queries import kcenter_greedy, select_queries
-from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, bradley_terry_loss
+from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, bradley_terry_loss, reward_agreement
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory, SegmentPairs
 from rat.preferences.labeller import Labeller, QueryRound
@@ -208,6 +208,25 @@ def test_reward_is_tanh_bounded_and_the_mean_of_members():
     members = ens.member_rewards(torch.as_tensor(obs, dtype=torch.float32), torch.as_tensor(act, dtype=torch.float32))
     assert members.shape == (3, 7) and members.abs().max() <= 1.0
     np.testing.assert_allclose(ens.r_hat(obs, act), members.mean(0).detach().numpy(), rtol=1e-6)
+
+
+def test_r_hat_in_chunks_equals_one_batch_and_takes_a_single_transition():
+    ens = RewardEnsemble(3, 2, RewardModelConfig(hidden=8, layers=1))
+    obs, act = np.random.default_rng(0).normal(size=(7, 3)), np.ones((7, 2))
+    np.testing.assert_allclose(ens.r_hat(obs, act, chunk=3), ens.r_hat(obs, act), rtol=1e-6)
+    assert ens.r_hat(obs[0], act[0]).shape == () and np.isclose(ens.r_hat(obs[0], act[0]), ens.r_hat(obs, act)[0])
+
+
+def test_reward_agreement_scores_a_learned_reward_against_the_true_one():
+    true = np.random.default_rng(0).normal(size=1000)
+    for learned, expected in ((true, 1.0), (2 * true + 3, 1.0), (-true, -1.0)):
+        scores = reward_agreement(learned, true, segment=10)
+        assert scores["step_corr"] == pytest.approx(expected) and scores["segment_corr"] == pytest.approx(expected)
+        assert scores["pairs_ordered"] == (1.0 if expected > 0 else 0.0)
+    # segments [1, 0, 2] against learned [0, 1, 3]: of the three distinct pairs, two are ordered right
+    scores = reward_agreement([0, 0, 1, 0, 3, 0], [1, 0, 0, 0, 2, 0], segment=2)
+    assert scores["pairs_ordered"] == pytest.approx(2 / 3, abs=0.02)
+    assert reward_agreement(true, np.ones(1000), segment=10) == {}  # a constant true reward: nothing is defined
 
 
 # --- state entropy --------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from rat.agents.exploration import RunningMeanStd, state_entropy_reward
 from rat.agents.sac import SAC, SACConfig
 from rat.errors import RatError
 from rat.preferences.queries import STRATEGIES, pair_features, select_queries
-from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig
+from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, reward_agreement
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory
 from rat.preferences.store import LabelStore
@@ -225,9 +225,23 @@ class PebbleLearner:
         metrics = self.train_reward()
         metrics.update({"labels": float(self.store.count(self.source)), "queries_asked": float(self.asked),
                         "round_labels": float(len(labels.y)), "round_ties": float(np.sum(labels.y == 0.5))})
+        metrics.update(self.reward_agreement())
         if first:
             self.reset_critic()
         return metrics
+
+    def reward_agreement(self, episodes: int = 20) -> dict[str, float]:
+        """r̂ against the target's own reward over the last ``episodes`` episodes (a diagnostic, logged after
+        every round as ``reward_step_corr``, ``reward_segment_corr`` and ``reward_pairs_ordered``; see
+        :func:`~rat.preferences.reward_model.reward_agreement`). It reads the target's reward, which the
+        scripted teacher labels by and another labeller may not."""
+        L = self.config.segment_length
+        recent = [e[:3] for e in self.history.with_current()[-episodes:] if len(e[0]) >= L]
+        if not recent:
+            return {}
+        obs, act, true = (np.concatenate([part[: len(part) // L * L] for part in parts]) for parts in zip(*recent))
+        scores = reward_agreement(self.ensemble.r_hat(obs, act), true, L)
+        return {f"reward_{name}": value for name, value in scores.items()}
 
     def reset_critic(self) -> None:
         """PEBBLE's critic reset at the end of pre-training, then ``reset_updates`` SAC updates on the new reward."""
@@ -244,9 +258,7 @@ class PebbleLearner:
         metrics = self.ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, labels.y, self.rng)
         if self.config.normalize_reward and len(self.buffer):
             n = len(self.buffer)
-            raw = np.concatenate([self.ensemble.r_hat(self.buffer.obs[i:min(i + 8192, n)],
-                                                      self.buffer.action[i:min(i + 8192, n)])
-                                  for i in range(0, n, 8192)])
+            raw = self.ensemble.r_hat(self.buffer.obs[:n], self.buffer.action[:n])
             self.reward_stats = (float(raw.mean()), float(max(raw.std(), 1e-6)))
             metrics |= {"reward_mean": self.reward_stats[0], "reward_std": self.reward_stats[1]}
         self.buffer.relabel(lambda o, a, _: self.learned_reward(o, a))

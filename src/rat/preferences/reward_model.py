@@ -102,11 +102,13 @@ class RewardEnsemble(nn.Module):
         self.input_std.copy_(std.float().clamp_min(self.MIN_STD))
 
     @torch.no_grad()
-    def r_hat(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
-        """The ensemble-mean reward of transitions (numpy in and out, batched over the leading axes)."""
-        device = self._device
-        o = torch.as_tensor(obs, dtype=torch.float32, device=device)
-        a = torch.as_tensor(action, dtype=torch.float32, device=device)
+    def r_hat(self, obs: np.ndarray, action: np.ndarray, chunk: int = 8192) -> np.ndarray:
+        """The ensemble-mean reward of transitions (numpy in and out, batched over the leading axes; ``chunk``
+        entries of the first axis at a time, so a whole replay buffer fits in memory)."""
+        if np.ndim(obs) > 1 and len(obs) > chunk:
+            return np.concatenate([self.r_hat(obs[i:i + chunk], action[i:i + chunk]) for i in range(0, len(obs), chunk)])
+        o = torch.as_tensor(obs, dtype=torch.float32, device=self._device)
+        a = torch.as_tensor(action, dtype=torch.float32, device=self._device)
         return self.member_rewards(o, a).mean(0).cpu().numpy()
 
     @torch.no_grad()
@@ -166,3 +168,25 @@ class RewardEnsemble(nn.Module):
         for o, s in zip(self.optimizers, state["optimizers"]):
             o.load_state_dict(s)
         self.rounds, self.epochs_run = int(state["rounds"]), int(state["epochs_run"])
+
+
+def reward_agreement(learned: np.ndarray, true: np.ndarray, segment: int, pairs: int = 20_000) -> dict[str, float]:
+    """How a learned reward agrees with a true one over the same steps, given in order, whole segments of
+    ``segment`` steps back to back: the per-step correlation, the correlation of segment returns, and, of
+    ``pairs`` random pairs of segments (drawn with a fixed seed) whose true returns differ, the share that the
+    learned returns order as the true ones do. A score is left out where it is undefined (a constant reward,
+    no decided pair)."""
+    learned, true = np.asarray(learned, np.float64).reshape(-1), np.asarray(true, np.float64).reshape(-1)
+    m = len(true) // segment * segment
+    seg_learned, seg_true = learned[:m].reshape(-1, segment).sum(1), true[:m].reshape(-1, segment).sum(1)
+
+    scores = {}
+    for name, (x, y) in {"step_corr": (learned, true), "segment_corr": (seg_learned, seg_true)}.items():
+        if len(x) >= 2 and x.std() > 0 and y.std() > 0:
+            scores[name] = float(np.corrcoef(x, y)[0, 1])
+    i, j = np.random.default_rng(0).integers(len(seg_true), size=(2, pairs)) if len(seg_true) else np.zeros((2, 0), int)
+    decided = seg_true[i] != seg_true[j]
+    if decided.any():
+        right = np.sign(seg_learned[i] - seg_learned[j]) == np.sign(seg_true[i] - seg_true[j])
+        scores["pairs_ordered"] = float(right[decided].mean())
+    return scores
