@@ -46,6 +46,7 @@ def main() -> None:
     parser.add_argument("--hidden", type=int, default=256)
     parser.add_argument("--layers", type=int, default=3)
     parser.add_argument("--normalize-inputs", action="store_true")
+    parser.add_argument("--lr", type=float, default=RewardModelConfig.lr, help="Adam's learning rate")
     parser.add_argument("--big", type=float, default=0.5, help="a true-return gap counted as clear")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -61,10 +62,10 @@ def main() -> None:
                                            ("obs0", "act0", "reward0", "obs1", "act1", "reward1")))
     tr, te = part(train), part(held)
     config = RewardModelConfig(members=args.members, hidden=args.hidden, layers=args.layers, max_epochs=10 ** 6,
-                               max_updates=args.every, normalize_inputs=args.normalize_inputs)
+                               max_updates=args.every, normalize_inputs=args.normalize_inputs, lr=args.lr)
     ensemble = RewardEnsemble(tr.obs0.shape[-1], tr.act0.shape[-1], config)
     print(f"{store}: {len(train)} training labels, {len(held)} held out; {args.members} member(s) "
-          f"{args.layers}×{args.hidden}, inputs {'standardised' if args.normalize_inputs else 'raw'}")
+          f"{args.layers}×{args.hidden}, lr {args.lr:g}, inputs {'standardised' if args.normalize_inputs else 'raw'}")
     print("| updates | training accuracy | held-out accuracy | held-out, |ΔR| ≥ "
           f"{args.big} | r̂ vs true reward per step | seconds |")
     print("| ---: | ---: | ---: | ---: | ---: | ---: |")

@@ -67,7 +67,7 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Pa
 
 def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehaviour | None = None,
              video: str | Path | None = None, video_episodes: int | Sequence[int] = 2, video_every: int = 2,
-             progress: bool = False, stop_at_success: bool = False) -> EvalResult:
+             progress: bool = False, stop_at_success: bool = False, desc: str = "evaluating") -> EvalResult:
     """Run ``policy`` for ``episodes`` episodes of ``env``.
 
     Args:
@@ -80,11 +80,12 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
         video: if given, the first ``video_episodes`` episodes (or those with these indices) are recorded there (needs
             ``render_mode="rgb_array"``), one frame every ``video_every`` steps.
         stop_at_success: end an episode at its first success (faster; returns are then partial).
+        progress, desc: show a progress bar over the episodes, and its label.
     """
     filmed = set(range(video_episodes)) if isinstance(video_episodes, int) else set(video_episodes)
     returns, successes, first, last = [], [], [], []
     frames: list[np.ndarray] = []
-    for ep in tqdm(range(episodes), desc="evaluating", disable=not progress, leave=False):
+    for ep in tqdm(range(episodes), desc=desc, disable=not progress, leave=False):
         obs, info = env.reset(seed=seed + ep)
         if hasattr(policy, "reset"):
             policy.reset()

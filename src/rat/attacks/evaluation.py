@@ -69,18 +69,21 @@ class AttackEval:
 
 def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, target: TargetBehaviour,
                     threat: ThreatModel, episodes: int, seed: int, *, video: str | Path | None = None,
-                    video_episodes: int | Sequence[int] = 2, progress: bool = False) -> AttackEval:
+                    video_episodes: int | Sequence[int] = 2, progress: bool = False,
+                    desc: str = "evaluating the attack") -> AttackEval:
     """Run the victim on attacked observations; success is the *target*'s test, at any step.
 
     Episode ``i`` is reset with ``seed + i`` (see :mod:`rat.seeds`).
     """
     attacked = AttackedObservation(env, perturbation, threat)
     result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress,
-                      video_episodes=video_episodes)
+                      video_episodes=video_episodes, desc=desc)
     norms = np.asarray(attacked.norms)
     return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms), list(attacked.records))
 
 
-def evaluate_clean(victim: Victim, env: gym.Env, target: TargetBehaviour, episodes: int, seed: int) -> EvalResult:
+def evaluate_clean(victim: Victim, env: gym.Env, target: TargetBehaviour, episodes: int, seed: int,
+                   progress: bool = False) -> EvalResult:
     """The unattacked victim's success at ``target`` over the episodes :func:`evaluate_attack` runs with ``seed``."""
-    return evaluate(numpy_policy(victim), env, episodes, seed, target=target)
+    return evaluate(numpy_policy(victim), env, episodes, seed, target=target, progress=progress,
+                    desc="the clean victim")

@@ -440,12 +440,15 @@ class RATTrainer:
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
-                        intention: TanhGaussianActor | None = None, gaps: list[float] | None = None) -> AttackEval:
-        """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``)."""
+                        intention: TanhGaussianActor | None = None, gaps: list[float] | None = None,
+                        desc: str | None = None) -> AttackEval:
+        """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``).
+        ``desc``: show a progress bar over the episodes with this label (the final evaluations, which a refined
+        attack makes long)."""
         cfg = self.config
         return evaluate_attack(self.victim, self.attack(refine, intention, gaps),
                                self.setup.make_env(cfg.seed + seeds.EVAL_ENV), self.target, cfg.threat, episodes, seed,
-                               video=video)
+                               video=video, progress=desc is not None and self.setup.progress, desc=desc or "")
 
     def evaluate(self) -> dict[str, float]:
         """The attack now, and a snapshot of the adversary with the π_θ it imitated (for selection by r̂)."""
@@ -525,7 +528,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
         save_checkpoint(run.dir / "adversary-last", "adversary",
                         {"adversary": adversary.state_dict(), "intention": pi_theta.state_dict()}, meta)
-        last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True)
+        last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, desc="the last adversary")
         selected = select_by_learned_reward(trainer.snapshots, adversary, trainer.victim, trainer.learner.ensemble,
                                             setup.make_env(cfg.seed + seeds.SELECTION_ENV), cfg)
         imitated = selected.pop("intention")  # a snapshot's: the π_θ it imitated, not the last one
@@ -534,15 +537,16 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
         details.update(selected, last_attack_success_rate=last.result.success_rate)
     if cfg.refine_steps:  # the network's Δ alone, beside the refined attack
         details["network_attack_success_rate"] = trainer.evaluate_attack(
-            cfg.final_eval_episodes, seeds.FINAL).result.success_rate
+            cfg.final_eval_episodes, seeds.FINAL, desc="the network's Δ alone").result.success_rate
     gaps: list[float] = []  # what refinement left of ‖μ_ν(s̃) − tanh μ_θ(s)‖ along the attacked episodes
-    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, intention=pi_theta, gaps=gaps)
+    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, intention=pi_theta, gaps=gaps,
+                                    desc="the attack")
     if gaps:  # large where π_θ asks for actions the ball cannot make the victim take (benchmarks/strength.md)
         details["refined_gap"] = float(np.mean(gaps))
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
     clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
-                           seeds.FINAL)
+                           seeds.FINAL, progress=setup.progress)
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(),
                                                           "intention": pi_theta.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
