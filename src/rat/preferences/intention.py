@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from rat import seeds
 from rat.device import resolve_device
@@ -28,6 +27,7 @@ from rat.eval import evaluate
 from rat.loop import TrainingLoop, write_report
 from rat.preferences.labeller import Labeller
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
+from rat.preferences.reward_model import reward_agreement
 from rat.preferences.segments import EpisodeHistory
 from rat.plots import plot_reward_quality, plot_training
 from rat.preferences.store import LabelStore
@@ -100,7 +100,7 @@ def reward_quality(ensemble, episodes: list[dict[str, np.ndarray]], segment_leng
     accuracy = float(np.mean(np.sign(true_diff[decided]) == np.sign(learned_diff[decided]))) if decided.any() else float("nan")
     r_true = np.concatenate([e["reward"] for e in episodes])
     r_hat = np.concatenate([ensemble.r_hat(e["obs"], e["action"]) for e in episodes])
-    pearson = float(stats.pearsonr(r_hat, r_true)[0]) if np.std(r_true) > 0 and np.std(r_hat) > 0 else float("nan")
+    pearson = reward_agreement(r_hat, r_true, segment_length).get("step_corr", float("nan"))
     return RewardQuality(accuracy, int(decided.sum()), pearson, len(r_true))
 
 
