@@ -50,6 +50,8 @@ def main() -> None:
     parser.add_argument("--big", type=float, default=0.5, help="a true-return gap counted as clear")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    if args.lr <= 0:
+        parser.error(f"--lr must be positive, got {args.lr}")
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
