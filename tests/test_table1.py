@@ -135,3 +135,30 @@ def test_the_grid_command_takes_label_counts_in_one_line(tmp_path, capsys):
     assert main(["bench", "table1", "--labels", "manipulation:3000", "--out", str(tmp_path / "g")]) != 0
     assert "--labels 'manipulation:3000' is not SCENARIO=N" in capsys.readouterr().err
     assert not (tmp_path / "g").exists()
+
+
+def test_the_reports_of_a_grid_stopped_part_way_come_from_its_finished_cells(tmp_path, capsys):
+    from dataclasses import asdict
+
+    from rat.cli import main
+
+    cells = random_cells([0, 1, 2])
+    (tmp_path / "grid.json").write_text(json.dumps({"preset": asdict(SMOKE), "cells": [c.key for c in cells]}))
+    for cell, success in zip(cells[:2], (0.25, 0.75)):  # seeds 0 and 1 finished, seed 2 never ran
+        cell.directory(tmp_path).mkdir(parents=True)
+        (cell.directory(tmp_path) / "result.json").write_text(json.dumps(
+            {**asdict(cell), "attack_success_rate": success, "clean_success_rate": 0.0, "victim": "zoo:drawer-open-v3"}))
+    assert main(["bench", "table1", "--report-only", "--out", str(tmp_path)]) == 0
+    assert "2 of the grid's 3 cells finished" in capsys.readouterr().out
+    with open(tmp_path / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["seed"], r["attack_success_rate"], r["victim"]) for r in rows] == [
+        ("0", "0.25", "zoo:drawer-open-v3"), ("1", "0.75", "zoo:drawer-open-v3")]
+    assert "**50.0 ± 25.0** (2)" in (tmp_path / "table1.md").read_text()  # the two seeds' mean ± std
+    assert not cells[2].directory(tmp_path).exists()  # nothing ran
+
+    assert main(["bench", "table1", "--report-only", "--out", str(tmp_path / "nothing")]) != 0
+    assert "holds no grid (no grid.json)" in capsys.readouterr().err
+    (tmp_path / "grid.json").write_text("{not json")
+    assert main(["bench", "table1", "--report-only", "--out", str(tmp_path)]) != 0
+    assert "is not a grid record" in capsys.readouterr().err

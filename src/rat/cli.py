@@ -641,12 +641,19 @@ def _csv(kind):
 @click.option("--jobs", type=int, default=2, show_default=True, help="parallel local processes")
 @click.option("--ray-address", default=None, help="run the cells as Ray tasks on this cluster ('auto', 'ray://host:10001')")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table1"), show_default=True)
+@click.option("--report-only", is_flag=True,
+              help="run nothing: write the reports of the grid in --out from its finished cells (a grid stopped part-way)")
 @click.pass_context
-def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out) -> None:
+def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out, report_only) -> None:
     """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
     from rat.experiments.presets import GRID_PRESETS
-    from rat.experiments.table1 import grid_cells, run_grid
+    from rat.experiments.table1 import grid_cells, grid_reports, run_grid
 
+    if report_only:
+        rows = grid_reports(out)
+        total = len(json.loads((out / "grid.json").read_text())["cells"])
+        click.echo(f"{len(rows)} of the grid's {total} cells finished; {out / 'table1.md'}, {out / 'results.csv'}")
+        return
     counts = {}
     for item in labels:
         name, _, count = item.partition("=")

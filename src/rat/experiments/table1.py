@@ -239,10 +239,27 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
             status = row.get("error") or (f"{100 * row['attack_success_rate']:.1f}% in {row['minutes']} min here "
                                           f"({row['train_minutes']} min of training over every session)")
             echo(f"[{len(ran) + len(failed)}/{len(todo)}] {Cell(row['task'], row['scenario'], row['method'], row['seed']).key}: {status}")
-    # the reports cover every cell this directory's grid has held, not only this call's
-    rows = [r for key in record["cells"] if (r := finished(Cell.from_key(key), out)) is not None]
+    return {"ran": ran, "skipped": skipped, "failed": failed, "rows": grid_reports(out)}
+
+
+def grid_reports(out: str | Path) -> list[dict]:
+    """Write the reports of the grid in ``out`` from every cell its ``grid.json`` has held that has finished
+    (a grid stopped part-way included); runs nothing. Returns the finished cells' rows."""
+    out = Path(out)
+    grid_file = out / "grid.json"
+    if not grid_file.exists():
+        raise RatError(f"'{out}' holds no grid (no grid.json); give the --out of a grid `rat bench table1` ran")
+    try:
+        record = json.loads(grid_file.read_text())
+        known = {f.name for f in dataclasses.fields(GridPreset)}
+        preset = GridPreset(**{k: v for k, v in record["preset"].items() if k in known})
+        keys = record["cells"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise RatError(f"'{grid_file}' is not a grid record ({exc.__class__.__name__}: {exc}); "
+                       "restore it or run the grid into a new --out") from None
+    rows = [r for key in keys if (r := finished(Cell.from_key(key), out)) is not None]
     write_reports(out, rows, preset)
-    return {"ran": ran, "skipped": skipped, "failed": failed, "rows": rows}
+    return rows
 
 
 def cell_progress(cell: Cell, out: Path, within: float) -> str | None:
