@@ -162,3 +162,6 @@ def test_the_reports_of_a_grid_stopped_part_way_come_from_its_finished_cells(tmp
     (tmp_path / "grid.json").write_text("{not json")
     assert main(["bench", "table1", "--report-only", "--out", str(tmp_path)]) != 0
     assert "is not a grid record" in capsys.readouterr().err
+    with pytest.raises(RatError, match="is not a grid record"):  # a grid run into it refuses too, before any cell
+        run_grid(random_cells([2]), SMOKE, tmp_path, jobs=1, echo=lambda _: None)
+    assert (tmp_path / "grid.json").read_text() == "{not json" and not cells[2].directory(tmp_path).exists()

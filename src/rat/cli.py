@@ -647,11 +647,11 @@ def _csv(kind):
 def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out, report_only) -> None:
     """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
     from rat.experiments.presets import GRID_PRESETS
-    from rat.experiments.table1 import grid_cells, grid_reports, run_grid
+    from rat.experiments.table1 import grid_cells, grid_reports, read_grid, run_grid
 
     if report_only:
         rows = grid_reports(out)
-        total = len(json.loads((out / "grid.json").read_text())["cells"])
+        total = len(read_grid(out)["cells"])
         click.echo(f"{len(rows)} of the grid's {total} cells finished; {out / 'table1.md'}, {out / 'results.csv'}")
         return
     counts = {}

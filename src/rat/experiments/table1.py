@@ -213,7 +213,7 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
     record = {"preset": asdict(preset), "cells": [c.key for c in cells]}
     grid_file = out / "grid.json"
     if grid_file.exists():
-        before = json.loads(grid_file.read_text())
+        before = read_grid(out)
         defaults = {f.name: f.default for f in dataclasses.fields(GridPreset) if f.default is not dataclasses.MISSING}
         if config_differences(before["preset"], record["preset"], defaults):  # settings added since match at defaults
             raise RatError(f"'{out}' holds a grid with preset '{before['preset']['name']}' and other budgets; "
@@ -242,23 +242,36 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
     return {"ran": ran, "skipped": skipped, "failed": failed, "rows": grid_reports(out)}
 
 
-def grid_reports(out: str | Path) -> list[dict]:
-    """Write the reports of the grid in ``out`` from every cell its ``grid.json`` has held that has finished
-    (a grid stopped part-way included); runs nothing. Returns the finished cells' rows."""
-    out = Path(out)
-    grid_file = out / "grid.json"
+def read_grid(out: str | Path) -> dict:
+    """The record of the grid in ``out`` (its ``grid.json``, as written): ``preset`` (the budgets, a dict) and
+    ``cells`` (every cell key the directory has held); a missing or damaged record is refused in one line."""
+    grid_file = Path(out) / "grid.json"
     if not grid_file.exists():
         raise RatError(f"'{out}' holds no grid (no grid.json); give the --out of a grid `rat bench table1` ran")
     try:
         record = json.loads(grid_file.read_text())
-        known = {f.name for f in dataclasses.fields(GridPreset)}
-        preset = GridPreset(**{k: v for k, v in record["preset"].items() if k in known})
-        keys = record["cells"]
-    except (ValueError, KeyError, TypeError) as exc:
+        record_preset(record)
+        if not all(isinstance(key, str) for key in record["cells"]):
+            raise TypeError("a cell key is not a string")
+        return record
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise RatError(f"'{grid_file}' is not a grid record ({exc.__class__.__name__}: {exc}); "
                        "restore it or run the grid into a new --out") from None
-    rows = [r for key in keys if (r := finished(Cell.from_key(key), out)) is not None]
-    write_reports(out, rows, preset)
+
+
+def record_preset(record: dict) -> GridPreset:
+    """The :class:`GridPreset` of a grid record (settings it no longer has are left out)."""
+    known = {f.name for f in dataclasses.fields(GridPreset)}
+    return GridPreset(**{k: v for k, v in record["preset"].items() if k in known})
+
+
+def grid_reports(out: str | Path) -> list[dict]:
+    """Write the reports of the grid in ``out`` from every cell its ``grid.json`` has held that has finished
+    (a grid stopped part-way included); runs nothing. Returns the finished cells' rows."""
+    out = Path(out)
+    record = read_grid(out)
+    rows = [r for key in record["cells"] if (r := finished(Cell.from_key(key), out)) is not None]
+    write_reports(out, rows, record_preset(record))
     return rows
 
 
