@@ -100,6 +100,7 @@ def test_intention_train_reports_success_reward_quality_and_plots(capsys, tmp_pa
     code, text, err = run(capsys, "intention", "train", "--task", "drawer-open-v3", "--target", "reach",
                           "--steps", "1000", "--seed-steps", "100", "--pretrain-steps", "300", "--budget", "40",
                           "--per-round", "20", "--every", "300", "--batch-size", "32", "--reward-epochs", "3", "--eval-every", "500",
+                          "--set", "eval_episodes=2", "--set", "final_eval_episodes=3", "--set", "quality_episodes=2",
                           "--out", str(out))
     assert code == 0, err
     assert "target success of the intention policy" in text and "preference accuracy" in text
@@ -166,8 +167,8 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
 
     from rat.experiments.runner import film_attack
 
-    filmed = film_attack(tmp_path / "run", tmp_path / "attack.mp4", episodes=3, show=2)
-    assert len(filmed) == 2 and (tmp_path / "attack.mp4").stat().st_size > 10_000
+    filmed = film_attack(tmp_path / "run", tmp_path / "attack.mp4", episodes=2, show=1)
+    assert len(filmed) == 1 and (tmp_path / "attack.mp4").stat().st_size > 10_000
 
 
 def test_attack_bad_inputs(capsys, tmp_path):
@@ -234,7 +235,7 @@ def test_a_victim_that_does_not_fit_leaves_no_run_behind(capsys, tmp_path):
 @pytest.mark.slow
 def test_a_baseline_from_the_cli_then_attack_eval(capsys, tmp_path):
     code, out, err = run(capsys, "attack", "train", "--method", "random", "--target", "opposite", "--no-video",
-                         "--out", str(tmp_path / "random"))
+                         "--set", "final_eval_episodes=4", "--out", str(tmp_path / "random"))
     assert code == 0 and "random (none) attack success" in out, err
     code, out, _ = run(capsys, "list", "attacks")
     assert code == 0 and all(name in out for name in ("rat", "random", "sa-rl", "pa-ad", "mad"))

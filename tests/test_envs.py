@@ -71,13 +71,15 @@ def test_unknown_task_names_the_fix():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task, state_size", [("drawer-open-v3", 28), ("Walker2d-v5", 19)])
-def test_recorded_physics_states_film_again_to_the_pixel_in_another_instance(task, state_size):
+@pytest.mark.parametrize("task, state_size, shadow_map", [("drawer-open-v3", 28, 1024), ("Walker2d-v5", 19, 2048)])
+def test_recorded_physics_states_film_again_to_the_pixel_in_another_instance(task, state_size, shadow_map):
     """What the labelling page shows: frames rendered from recorded states and scene, in an environment
     whose own reset put the object and goal elsewhere, equal the recording environment's frames."""
-    from rat.envs.physics import physics_of, render_states, set_physics_state
+    from rat.envs.physics import _model_data, physics_of, render_states, set_physics_state
 
     recorder, other = (make_task(task, seed=s, render_mode="rgb_array") for s in (3, 9))
+    # a shadow map 4x the frame's side (224, 480 pixels), not MuJoCo's 4,096: half the time of a frame on a CPU
+    assert _model_data(recorder)[0].vis.quality.shadowsize == shadow_map
     recorder.reset(seed=3)
     other.reset(seed=9)
     states, scene = [], None

@@ -27,10 +27,11 @@ from rat.preferences.reward_model import RewardModelConfig
 
 
 def small_config(steps=2000, **kw):
+    kw = dict(dict(adversary_hidden=64, adversary_lr=1e-3, adversary_every=20, adversary_updates=5, adversary_batch=128,
+                   weighting_every=200, eval_every=500, eval_episodes=20, final_eval_episodes=50, checkpoint_every=400),
+              **kw)
     return RATConfig(
-        epsilon=0.1, total_steps=steps, horizon=HORIZON, adversary_hidden=64, adversary_lr=1e-3, adversary_every=20,
-        adversary_updates=5, adversary_batch=128, weighting_every=200, eval_every=500, eval_episodes=20,
-        final_eval_episodes=50, checkpoint_every=400, **kw,
+        epsilon=0.1, total_steps=steps, horizon=HORIZON, **kw,
         pebble=PebbleConfig(sac=SACConfig(hidden=64, layers=2, batch_size=128, lr=1e-3, alpha_lr=1e-3, init_temperature=0.05),
                             seed_steps=200, unsupervised_steps=200, budget=200, per_round=40, feedback_every=200,
                             segment_length=10, candidates_factor=4, buffer_capacity=20_000,
@@ -134,7 +135,8 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     from rat.attacks.rat import adversary_function, load_adversary, load_rat_attack
     from rat.checkpoint import save_checkpoint
 
-    report = train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run")
+    config = small_config(1000, refine_steps=10, select="reward", eval_episodes=5, final_eval_episodes=10)
+    report = train_rat(config, setup(), tmp_path / "run")
     assert 0.0 <= report.details["network_attack_success_rate"] <= 1.0 and "network's Δ alone" in report.summary()
     assert 0.0 <= report.details["refined_gap"] < 2 * 2 ** 0.5 and "gap left to π_θ's actions" in report.summary()
     assert report.max_perturbation <= 0.1 + 1e-9
@@ -153,11 +155,11 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     saved = __import__("json").loads(config_path.read_text())
     del saved["rat"]["refine_lr"]  # default now
     config_path.write_text(__import__("json").dumps(saved))
-    assert train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run").steps == 1000
+    assert train_rat(config, setup(), tmp_path / "run").steps == 1000
     del saved["rat"]["refine_steps"]  # 10 now, not the default
     config_path.write_text(__import__("json").dumps(saved))
     with pytest.raises(RatError, match="refine_steps"):
-        train_rat(small_config(1000, refine_steps=10, select="reward"), setup(), tmp_path / "run")
+        train_rat(config, setup(), tmp_path / "run")
     victim, obs = point_victim(), np.array([0.1, 0.0, 0.15, 0.02])  # the victim's action not clamped here
     network = load_rat_attack(tmp_path / "run", victim, refine_steps=0)
     adversary, _ = load_adversary(tmp_path / "run")

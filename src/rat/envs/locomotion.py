@@ -57,6 +57,10 @@ class LocomotionTask(gym.Wrapper):
         super().__init__(gym.make(task, render_mode=render_mode, **camera))
         self.task, self._seed = task, seed
         model = self.env.unwrapped.model
+        if render_mode is not None:
+            from rat.envs.physics import fit_shadow_map
+
+            fit_shadow_map(model, max(self.env.unwrapped.width, self.env.unwrapped.height))
         self._bodies = {model.body(i).name: i for i in range(model.nbody)}
         self._joints = {model.joint(i).name: model.jnt_qposadr[i] for i in range(model.njnt)}
         self._prev_x = self._start_x = 0.0

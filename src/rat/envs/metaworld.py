@@ -83,7 +83,10 @@ class MetaWorldTask(gym.Env):
         if render_mode is not None:
             from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer
 
+            from rat.envs.physics import fit_shadow_map
+
             self._env.mujoco_renderer.close()
+            fit_shadow_map(self._env.model, size)
             self._env.mujoco_renderer = MujocoRenderer(self._env.model, self._env.data, None, size, size,
                                                        camera_name=camera)
         self._env._freeze_rand_vec = False  # a new object and goal at every reset

@@ -34,6 +34,19 @@ def _model_data(env: gym.Env):
     return inner.model, inner.data
 
 
+def fit_shadow_map(model: mujoco.MjModel, frame_side: int) -> None:
+    """Size ``model``'s shadow map to the frames it renders: 4× their side, a power of two, never above the model's.
+
+    MuJoCo's default map is 4,096² whatever the frame. Rendered on the CPU (no GPU, Mesa's llvmpipe),
+    that map is most of a frame's cost: measured here, a 224-pixel Meta-World frame takes 0.23 s with
+    it and 0.14 s with 1,024², a 480-pixel Walker2d frame 0.12 s and 0.08 s with 2,048², the pictures
+    equal to within 0.01 of 255 per pixel on average. Call before the first render (the GL context
+    reads the size once).
+    """
+    side = 1 << max(4 * int(frame_side) - 1, 1).bit_length()
+    model.vis.quality.shadowsize = min(int(model.vis.quality.shadowsize), side)
+
+
 def physics_state(env: gym.Env) -> np.ndarray:
     """The full physics state of ``env`` now (float64)."""
     model, data = _model_data(env)
