@@ -1,5 +1,6 @@
 """Threat model, RAT's losses and hypergradient, gradient isolation, the combined behaviour policy."""
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -362,3 +363,43 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
     with pytest.raises(RatError, match="oracle"):
         from rat.preferences.pebble import PebbleConfig
         RATConfig(select="reward", pebble=PebbleConfig(oracle=True))
+
+
+class EndsEarly(gym.Wrapper):
+    """The point task, each episode ending at its own step (25 to 34, by its seed): lockstep must not wait."""
+
+    def reset(self, *, seed=None, options=None):
+        self.length, self.t = 25 + (seed or 0) % 10, 0
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.t += 1
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated or self.t >= self.length, truncated, info
+
+
+def test_a_refined_attack_evaluated_in_lockstep_gives_each_episode_its_own_numbers():
+    """Ten episodes three at a time, Δ refined for all the running ones at once, against one at a time."""
+    from point_env import point_victim
+    from rat.attacks.evaluation import evaluate_attack
+    from rat.envs.targets import TargetBehaviour
+
+    victim, (_, intention, adversary, _, _, _) = point_victim(), isolation_setup()
+    reached = TargetBehaviour("near", "within 6 cm of the goal", lambda *a: 0.0,
+                              lambda info: float(np.linalg.norm(info["point"] - info["goal"])) < 0.06)
+    threat, runs = ThreatModel(0.025), {}  # a budget that keeps 3 of these 10 episodes near the goal
+    for mode, width in (("alone", 1), ("lockstep", 3)):
+        gaps: list[float] = []
+        attack = refined_function(adversary, intention.actor, victim, threat, 10, gaps=gaps)
+        runs[mode] = evaluate_attack(victim, attack, EndsEarly(PointGoal()), reached, threat, 10, 500,
+                                     make_env=lambda: EndsEarly(PointGoal()), lockstep=width), gaps
+    (alone, gaps_alone), (together, gaps_together) = runs["alone"], runs["lockstep"]
+    assert 0 < sum(alone.result.successes) < 10  # the attack decides some episodes and not others
+    assert together.result.successes == alone.result.successes
+    assert together.result.first_success_step == alone.result.first_success_step
+    np.testing.assert_allclose(together.result.mean_return, alone.result.mean_return, rtol=1e-5)
+    assert [r[:2] for r in together.records] == [r[:2] for r in alone.records]  # every observation, once, in order
+    assert together.steps == alone.steps == sum(26 + (500 + i) % 10 for i in range(10))  # the last one's too
+    np.testing.assert_allclose([r[2] for r in together.records], [r[2] for r in alone.records], atol=1e-6)
+    np.testing.assert_allclose(sorted(gaps_together), sorted(gaps_alone), atol=1e-4)
+    assert together.within_budget

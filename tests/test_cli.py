@@ -90,6 +90,8 @@ def test_missing_optional_dependency(capsys, tmp_path, monkeypatch):
 def test_negative_numbers(capsys, tmp_path):
     assert_user_error(*run(capsys, "victim", "eval", "zoo:drawer-open-v3", "--episodes", "-3")[::2],
                       "--episodes must be positive")
+    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path), "--lockstep", "0")[::2],
+                      "--lockstep must be positive")
     assert_user_error(*run(capsys, "victim", "train", "--task", "drawer-open-v3", "--bc-updates", "-1",
                            "--out", str(tmp_path / "r"))[::2], "bc-updates must be positive")
 

@@ -586,18 +586,23 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
 @click.option("--refine-loss", type=click.Choice(["l2", "kl"]), default=None,
               help="RAT only: what refinement minimises: the squared action gap (l2) or the adversary's own "
                    "KL loss (kl) [the run's refine_loss]")
+@click.option("--lockstep", type=int, default=32, show_default=True,
+              help="a refined RAT attack: this many episodes side by side, their observations refined together "
+                   "(1: one episode at a time, as a video is)")
 @click.option("--json", "as_json", is_flag=True)
-def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, as_json) -> None:
+def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, lockstep, as_json) -> None:
     """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
     from rat.experiments.runner import evaluate_saved_attack
     from rat.runs import check_writable_file
 
-    if episodes <= 0:
-        raise RatError(f"--episodes must be positive, got {episodes}")
+    for value, what in ((episodes, "--episodes"), (lockstep, "--lockstep")):
+        if value <= 0:
+            raise RatError(f"{what} must be positive, got {value}")
     for path, what in ((video, "--video"), (record, "--record")):
         if path is not None:
             check_writable_file(path, what)
-    r = evaluate_saved_attack(run, episodes, seed, video, refine_steps=refine_steps, refine_loss=refine_loss)
+    r = evaluate_saved_attack(run, episodes, seed, video, refine_steps=refine_steps, refine_loss=refine_loss,
+                              lockstep=lockstep)
     attacked, clean = r["attack"], r["clean"]
     if record is not None:
         attacked.write_records(record)

@@ -5,14 +5,16 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
+import torch
+from tqdm.auto import tqdm
 
 from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.envs.targets import TargetBehaviour
-from rat.eval import EvalResult, evaluate
+from rat.eval import EvalResult, evaluate, wilson_interval
 from rat.reports import AttackReport
 from rat.victims.base import Victim, numpy_policy
 
@@ -70,16 +72,83 @@ class AttackEval:
 def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, target: TargetBehaviour,
                     threat: ThreatModel, episodes: int, seed: int, *, video: str | Path | None = None,
                     video_episodes: int | Sequence[int] = 2, progress: bool = False,
-                    desc: str = "evaluating the attack") -> AttackEval:
+                    desc: str = "evaluating the attack", make_env: Callable[[], gym.Env] | None = None,
+                    lockstep: int = 32) -> AttackEval:
     """Run the victim on attacked observations; success is the *target*'s test, at any step.
 
-    Episode ``i`` is reset with ``seed + i`` (see :mod:`rat.seeds`).
+    Episode ``i`` is reset with ``seed + i`` (see :mod:`rat.seeds`). Given ``make_env`` (more environments
+    like ``env``), a perturbation that computes many observations' Δ at once (``batch``: a refined RAT
+    attack) and a memoryless victim, up to ``lockstep`` episodes run side by side and each step's Δ and
+    actions are computed for all of them together: the same episodes and numbers but for floating-point
+    rounding, in a fraction of the time (a video is always made one episode at a time).
     """
+    if (make_env is not None and video is None and hasattr(perturbation, "batch") and lockstep > 1
+            and victim.initial_context(1) is None):
+        return _evaluate_in_lockstep(victim, perturbation, env, make_env, target, threat, episodes, seed,
+                                     lockstep, progress, desc)
     attacked = AttackedObservation(env, perturbation, threat)
     result = evaluate(numpy_policy(victim), attacked, episodes, seed, target=target, video=video, progress=progress,
                       video_episodes=video_episodes, desc=desc)
     norms = np.asarray(attacked.norms)
     return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms), list(attacked.records))
+
+
+def _evaluate_in_lockstep(victim: Victim, perturbation, env: gym.Env, make_env: Callable[[], gym.Env],
+                          target: TargetBehaviour, threat: ThreatModel, episodes: int, seed: int, width: int,
+                          progress: bool, desc: str) -> AttackEval:
+    """:func:`evaluate_attack` with ``width`` episodes at a time, Δ and actions computed for them together.
+
+    Each episode sees exactly what it would alone: reset with ``seed + i``, every observation perturbed
+    once (the one after the last step too, as :class:`AttackedObservation` does), its success test its own.
+    """
+    envs = [env] + [make_env() for _ in range(min(width, episodes) - 1)]
+    device = next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, torch.nn.Module) else "cpu"
+    returns, first, last = [0.0] * episodes, [-1] * episodes, [False] * episodes
+    records: list[tuple[int, int, float]] = []
+    with tqdm(total=episodes, desc=desc, disable=not progress, leave=False) as bar:
+        for start in range(0, episodes, len(envs)):
+            wave = range(start, min(start + len(envs), episodes))  # episode start + k runs in envs[k]
+            obs, tests, steps, ended = {}, {}, {}, set()
+            for k, episode in enumerate(wave):
+                if hasattr(perturbation, "reset"):
+                    perturbation.reset(k)
+                obs[k] = envs[k].reset(seed=seed + episode)[0]
+                tests[k], steps[k] = target.episode_success(), 0
+            while obs:
+                slots = sorted(obs)
+                true = np.stack([obs[k] for k in slots])
+                delta = torch.as_tensor(perturbation.batch(true, slots), dtype=torch.float64)
+                attacked = threat.perturb(torch.as_tensor(true, dtype=torch.float64), delta).numpy()
+                norms = threat.size(attacked - true)
+                records.extend((wave[k], steps[k], float(n)) for k, n in zip(slots, norms))
+                acting = [i for i, k in enumerate(slots) if k not in ended]
+                with torch.no_grad():
+                    seen = torch.as_tensor(attacked[acting].astype(true.dtype), dtype=torch.float32, device=device)
+                    actions = victim.act(seen).cpu().numpy()
+                for k in [k for k in slots if k in ended]:  # its last observation is perturbed, not acted on
+                    del obs[k]
+                    bar.update(1)
+                for i, action in zip(acting, actions):
+                    k = slots[i]
+                    obs[k], reward, terminated, truncated, info = envs[k].step(action)
+                    episode = wave[k]
+                    returns[episode] += reward
+                    last[episode] = tests[k](info)
+                    if last[episode] and first[episode] < 0:
+                        first[episode] = steps[k]
+                    steps[k] += 1
+                    if terminated or truncated:
+                        ended.add(k)
+    for extra in envs[1:]:
+        extra.close()
+    successes = [f >= 0 for f in first]
+    n_ok = sum(successes)
+    result = EvalResult(episodes=episodes, success_rate=n_ok / episodes, success_ci=wilson_interval(n_ok, episodes),
+                        mean_return=float(np.mean(returns)), std_return=float(np.std(returns)), successes=successes,
+                        first_success_step=first, success_at_last_step=float(np.mean(last)))
+    records.sort()
+    norms = np.array([n for _, _, n in records])
+    return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms), records)
 
 
 def evaluate_clean(victim: Victim, env: gym.Env, target: TargetBehaviour, episodes: int, seed: int,

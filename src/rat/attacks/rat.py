@@ -26,7 +26,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -175,9 +175,7 @@ def adversary_function(adversary: Adversary) -> Perturbation:
     return delta
 
 
-def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
-                     steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
-                     victim_std: float = 1.0, kl_form: str = "exact") -> Perturbation:
+class RefinedAttack:
     """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §10).
 
     From the network's Δ, ``steps`` Adam steps on Δ itself (through tanh, so Δ stays in (−1, 1)^d and
@@ -185,48 +183,83 @@ def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim:
     gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖², every action dimension alike; ``loss="kl"``, the adversary's own
     training loss at this state, KL(N(μ_ν(s̃), σ_v²) ‖ π_θ(s)) (``victim_std``, ``kl_form``), which weighs
     each dimension by π_θ's confidence in it. The Δ with the smallest loss seen is used. The steps start
-    from the network's Δ or from the Δ chosen at the previous observation, whichever leaves the smaller
-    loss here (consecutive states are close). It needs what training already does — the victim's
+    from the network's Δ or from the Δ chosen at the episode's previous observation, whichever leaves the
+    smaller loss here (consecutive states are close). It needs what training already does — the victim's
     gradient and π_θ — and costs ``steps`` forward and backward passes of the victim per observation.
     Memoryless victims only (a sequence victim's context is not passed). ``gaps``, if given, receives the
     gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ left at each observation (whichever loss chose Δ).
+
+    Called with one observation it is a :data:`~rat.attacks.threat.Perturbation`; :meth:`batch` refines the
+    observations of several episodes at once (``slots`` name their episodes), each exactly as alone — Adam
+    acts on every element on its own and each row's loss has only its own Δ — but in one pass of the
+    networks per step, which is what makes evaluating it in lockstep (``evaluate_attack(make_env=...)``) fast.
     """
-    check_refine_loss(loss)
-    device = next(adversary.parameters()).device
-    previous: list[torch.Tensor] = []  # the last Δ chosen, before tanh
 
-    def action_of(s: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
-        return victim.act(threat.perturb(s, torch.tanh(raw)))
+    def __init__(self, adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
+                 steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
+                 victim_std: float = 1.0, kl_form: str = "exact"):
+        check_refine_loss(loss)
+        self.adversary, self.intention, self.victim, self.threat = adversary, intention, victim, threat
+        self.steps, self.lr, self.gaps, self.loss = steps, lr, gaps, loss
+        self.victim_std, self.kl_form = victim_std, kl_form
+        self.device = next(adversary.parameters()).device
+        self.previous: dict[int, torch.Tensor] = {}  # per episode slot: the last Δ chosen there, before tanh
 
-    def loss_of(s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-        if loss == "kl":
-            return gaussian_kl(action_of(s, raw), victim_std, mean, log_std, kl_form).sum()
-        return (action_of(s, raw) - mean).pow(2).sum()
+    def reset(self, slot: int = 0) -> None:
+        """A new episode in ``slot``: its first observation starts from the network's Δ alone."""
+        self.previous.pop(slot, None)
 
-    def delta(obs: np.ndarray) -> np.ndarray:
-        s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
-        mean, log_std = intention_gaussian(intention, s)
+    def _action(self, s: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
+        return self.victim.act(self.threat.perturb(s, torch.tanh(raw)))
+
+    def _losses(self, s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+        """Each row's loss (one per observation)."""
+        if self.loss == "kl":
+            return gaussian_kl(self._action(s, raw), self.victim_std, mean, log_std, self.kl_form)
+        return (self._action(s, raw) - mean).pow(2).sum(-1)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.batch(np.asarray(obs)[None], [0])[0]
+
+    def batch(self, obs: np.ndarray, slots: Sequence[int]) -> np.ndarray:
+        """Δ for each row of ``obs [B, d]``; row i continues the episode in ``slots[i]``."""
+        s = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        mean, log_std = intention_gaussian(self.intention, s)
         with torch.no_grad():
-            starts = [torch.atanh(adversary(s).clamp(-0.999, 0.999))] + previous
-            raw = min(starts, key=lambda r: loss_of(s, r, mean, log_std).item()).clone()
+            raw = torch.atanh(self.adversary(s).clamp(-0.999, 0.999))
+            known = [i for i, slot in enumerate(slots) if slot in self.previous]
+            if known:  # the previous Δ where it fits this state better (a tie keeps the network's)
+                before = torch.cat([self.previous[slots[i]] for i in known])
+                better = self._losses(s[known], before, mean[known], log_std[known]) < \
+                    self._losses(s[known], raw[known], mean[known], log_std[known])
+                raw[known] = torch.where(better[:, None], before, raw[known])
         raw.requires_grad_(True)
-        optimizer = torch.optim.Adam([raw], lr=lr)
-        best, best_loss = raw.detach().clone(), float("inf")
-        for step in range(steps + 1):  # the last pass only scores the last step
-            value = loss_of(s, raw, mean, log_std)
-            if value.item() < best_loss:
-                best, best_loss = raw.detach().clone(), value.item()
-            if step < steps:
-                optimizer.zero_grad(set_to_none=True)
-                value.backward(inputs=[raw])
-                optimizer.step()
-        if gaps is not None:
+        optimizer = torch.optim.Adam([raw], lr=self.lr)
+        best, best_loss = raw.detach().clone(), torch.full((len(s),), float("inf"), device=self.device)
+        for step in range(self.steps + 1):  # the last pass only scores the last step
+            losses = self._losses(s, raw, mean, log_std)
             with torch.no_grad():
-                gaps.append((action_of(s, best) - mean).norm().item())
-        previous[:] = [best]
-        return torch.tanh(best).squeeze(0).double().cpu().numpy()
+                improved = losses < best_loss
+                best = torch.where(improved[:, None], raw, best)
+                best_loss = torch.where(improved, losses, best_loss)
+            if step < self.steps:
+                optimizer.zero_grad(set_to_none=True)
+                losses.sum().backward(inputs=[raw])
+                optimizer.step()
+        if self.gaps is not None:
+            with torch.no_grad():
+                self.gaps.extend((self._action(s, best) - mean).norm(dim=-1).tolist())
+        for i, slot in enumerate(slots):
+            self.previous[slot] = best[i:i + 1]
+        return torch.tanh(best).double().cpu().numpy()
 
-    return delta
+
+def refined_function(adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
+                     steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
+                     victim_std: float = 1.0, kl_form: str = "exact") -> RefinedAttack:
+    """The adversary's Δ refined towards π_θ at every observation (see :class:`RefinedAttack`)."""
+    return RefinedAttack(adversary, intention, victim, threat, steps, lr, gaps, loss=loss, victim_std=victim_std,
+                         kl_form=kl_form)
 
 
 def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, weighting: WeightingNetwork | None,
@@ -446,9 +479,10 @@ class RATTrainer:
         ``desc``: show a progress bar over the episodes with this label (the final evaluations, which a refined
         attack makes long)."""
         cfg = self.config
-        return evaluate_attack(self.victim, self.attack(refine, intention, gaps),
-                               self.setup.make_env(cfg.seed + seeds.EVAL_ENV), self.target, cfg.threat, episodes, seed,
-                               video=video, progress=desc is not None and self.setup.progress, desc=desc or "")
+        make_env = lambda: self.setup.make_env(cfg.seed + seeds.EVAL_ENV)  # noqa: E731 (more of it: lockstep)
+        return evaluate_attack(self.victim, self.attack(refine, intention, gaps), make_env(), self.target, cfg.threat,
+                               episodes, seed, video=video, progress=desc is not None and self.setup.progress,
+                               desc=desc or "", make_env=make_env)
 
     def evaluate(self) -> dict[str, float]:
         """The attack now, and a snapshot of the adversary with the π_θ it imitated (for selection by r̂)."""

@@ -128,7 +128,8 @@ class AttackedObservation(gym.ObservationWrapper):
 
     Args:
         env: any gymnasium environment with a ``Box`` observation space.
-        perturbation: maps a true observation to Δ (numpy); projected here.
+        perturbation: maps a true observation to Δ (numpy); projected here. If it has ``reset()``
+            (state kept within an episode), that is called at every reset.
         threat: the budget.
     """
 
@@ -150,6 +151,8 @@ class AttackedObservation(gym.ObservationWrapper):
 
     def reset(self, **kwargs):
         self._episode, self._t = self._episode + 1, 0
+        if hasattr(self.perturbation, "reset"):  # a perturbation that carries state within an episode
+            self.perturbation.reset()
         obs, info = super().reset(**kwargs)
         info = dict(info, true_obs=self._last_true, perturbation_norm=self.norms[-1])
         return obs, info

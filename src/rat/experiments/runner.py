@@ -61,11 +61,12 @@ def train_attack(method: str, setup: AttackSetup, config, out: str | Path) -> At
 
 def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
                           progress: bool = True, video_episodes=2, refine_steps: int | None = None,
-                          refine_loss: str | None = None) -> dict:
+                          refine_loss: str | None = None, lockstep: int = 32) -> dict:
     """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim.
 
     ``refine_steps`` and ``refine_loss`` (RAT only) override the run's refinement of Δ towards π_θ (0 steps:
-    the network's Δ alone).
+    the network's Δ alone); a refined attack runs ``lockstep`` episodes side by side (see
+    :func:`~rat.attacks.evaluation.evaluate_attack`).
     """
     meta = saved_attack_meta(run)
     if "victim" not in meta or "task" not in meta:
@@ -85,7 +86,8 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     threat = ThreatModel(cfg["epsilon"], cfg["norm"])
     env = make_task(meta["task"], seed=seed, render_mode="rgb_array" if video else None)
     attacked = evaluate_attack(victim, perturbation, env, target, threat, episodes, seed, video=video,
-                               progress=progress, video_episodes=video_episodes)
+                               progress=progress, video_episodes=video_episodes,
+                               make_env=lambda: make_task(meta["task"], seed=seed), lockstep=lockstep)
     clean = evaluate_clean(victim, make_task(meta["task"], seed=seed), target, episodes, seed)
     return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"],
             "method": meta.get("method", "rat"), "epsilon": threat.epsilon, "norm": threat.norm, "attack": attacked,
