@@ -144,7 +144,7 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     from rat.preferences.reward_model import RewardModelConfig
 
     cfg = rat_config("cpu", budget=40, steps=900, adversary_hidden=32, adversary_every=100, adversary_batch=64,
-                     weighting_every=300, eval_every=450, eval_episodes=1, final_eval_episodes=2, checkpoint_every=500,
+                     refine_steps=0, weighting_every=300, eval_every=450, eval_episodes=1, final_eval_episodes=2, checkpoint_every=500,
                      pebble_overrides=dict(sac=SACConfig(hidden=32, layers=2, batch_size=32), seed_steps=100,
                                            unsupervised_steps=300, feedback_every=300,
                                            reward=RewardModelConfig(hidden=32, layers=2, max_epochs=3)))

@@ -235,8 +235,14 @@ def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_t
     from rat.attacks.rat import RAT
     from rat.experiments.presets import rat_config
 
-    config = rat_config("cpu")  # scores snapshots and π_θ with r̂, which an oracle run never learns
+    config = rat_config("cpu", target="opposite")  # scores snapshots and π_θ with r̂, which an oracle run never learns
     assert (config.select, config.imitate) == ("reward", "best")
+    manipulation = rat_config("cpu", target="reach")  # strength.md: measured on the SAC faucet victim's row
+    assert (manipulation.select, manipulation.imitate, manipulation.refine_steps) == ("last", "current", 50)
+    assert manipulation.pebble.max_episodes == 20 and manipulation.pebble.reward.normalize_inputs
+    paper = rat_config("paper", target="reach")  # the paper's settings stay one preset away
+    assert (paper.select, paper.imitate, paper.refine_steps, paper.pebble.max_episodes) == ("last", "current", 0, 100)
+    assert not paper.pebble.reward.normalize_inputs
     oracle = RAT.configure(replace(setup(), reward="oracle"), config)
     assert oracle.pebble.oracle and (oracle.select, oracle.imitate) == ("last", "current")
     labelled = RAT.configure(setup(), config)

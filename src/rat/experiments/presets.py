@@ -67,6 +67,14 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
     # 27 minutes in all with the cap (intention policy alone, reach: 93.3%; benchmarks/strength.md).
     pebble = replace(default, sac=replace(default.sac, batch_size=256),
                      reward=RewardModelConfig(max_epochs=30, max_updates=400))
+    # Departure for the manipulation scenario (the reach target), measured on 3 seeds of the SAC faucet
+    # victim's row (benchmarks/strength.md, "Queries from recent episodes only"): r̂'s inputs standardised,
+    # queries drawn from the last 20 episodes (PEBBLE's 100 are the whole of a 5×10⁴-step run), the
+    # adversary imitating π_θ as it moves, the last adversary kept and its Δ refined 50 steps towards π_θ:
+    # 100 / 100 / 56.7%, where the preset's settings before made 20–50% with the kept network's Δ.
+    manipulation = preset == "cpu" and target == "reach"
+    if manipulation:
+        pebble = replace(pebble, max_episodes=20, reward=replace(pebble.reward, normalize_inputs=True))
     pebble = replace(pebble, **pebble_overrides)
     budget = (SMOKE_LABELS if preset == "smoke" else default.budget) if budget is None else budget
     total = steps or (SMOKE_STEPS["rat"] if preset == "smoke" else 50_000)
@@ -81,6 +89,8 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
     # job's last adversary: 86.7 / 76.7 / 100% with it, 13.3 / 10.0 / 46.7% without.
     settings = dict(total_steps=total, adversary_batch=256, weighting_every=weighting_every, pebble=pebble,
                     select="reward", imitate="best") | (SMOKE_EVALUATION if preset == "smoke" else {})
+    if manipulation:
+        settings |= dict(select="last", imitate="current", refine_steps=50)
     return RATConfig(**(settings | overrides))
 
 
