@@ -51,6 +51,16 @@ class EvalResult:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def of(cls, returns: Sequence[float], first_success_step: Sequence[int], success_at_last: Sequence[bool]) -> "EvalResult":
+        """The outcome of episodes given, per episode, its return, its first successful step (-1: none) and
+        whether its last step passed the test."""
+        successes = [step >= 0 for step in first_success_step]
+        n_ok, episodes = sum(successes), len(successes)
+        return cls(episodes=episodes, success_rate=n_ok / episodes, success_ci=wilson_interval(n_ok, episodes),
+                   mean_return=float(np.mean(returns)), std_return=float(np.std(returns)), successes=successes,
+                   first_success_step=list(first_success_step), success_at_last_step=float(np.mean(success_at_last)))
+
 
 def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Path:
     """Write RGB frames to an mp4 (or gif, by suffix)."""
@@ -83,7 +93,7 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
         progress, desc: show a progress bar over the episodes, and its label.
     """
     filmed = set(range(video_episodes)) if isinstance(video_episodes, int) else set(video_episodes)
-    returns, successes, first, last = [], [], [], []
+    returns, first, last = [], [], []
     frames: list[np.ndarray] = []
     for ep in tqdm(range(episodes), desc=desc, disable=not progress, leave=False):
         obs, info = env.reset(seed=seed + ep)
@@ -105,19 +115,8 @@ def evaluate(policy: Policy, env, episodes: int, seed: int, target: TargetBehavi
             t += 1
             done = terminated or truncated or (stop_at_success and first_step >= 0)
         returns.append(total)
-        successes.append(first_step >= 0)
         first.append(first_step)
         last.append(ok_now)
     if video is not None and frames:
         write_video(frames, video)
-    n_ok = int(sum(successes))
-    return EvalResult(
-        episodes=episodes,
-        success_rate=n_ok / episodes,
-        success_ci=wilson_interval(n_ok, episodes),
-        mean_return=float(np.mean(returns)),
-        std_return=float(np.std(returns)),
-        successes=[bool(s) for s in successes],
-        first_success_step=first,
-        success_at_last_step=float(np.mean(last)),
-    )
+    return EvalResult.of(returns, first, last)

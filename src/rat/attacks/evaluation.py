@@ -14,9 +14,9 @@ from tqdm.auto import tqdm
 
 from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.envs.targets import TargetBehaviour
-from rat.eval import EvalResult, evaluate, wilson_interval
+from rat.eval import EvalResult, evaluate
 from rat.reports import AttackReport
-from rat.victims.base import Victim, numpy_policy
+from rat.victims.base import Victim, numpy_policy, victim_device
 
 
 @dataclass
@@ -102,7 +102,7 @@ def _evaluate_in_lockstep(victim: Victim, perturbation, env: gym.Env, make_env: 
     once (the one after the last step too, as :class:`AttackedObservation` does), its success test its own.
     """
     envs = [env] + [make_env() for _ in range(min(width, episodes) - 1)]
-    device = next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, torch.nn.Module) else "cpu"
+    device = victim_device(victim)
     returns, first, last = [0.0] * episodes, [-1] * episodes, [False] * episodes
     records: list[tuple[int, int, float]] = []
     with tqdm(total=episodes, desc=desc, disable=not progress, leave=False) as bar:
@@ -141,11 +141,7 @@ def _evaluate_in_lockstep(victim: Victim, perturbation, env: gym.Env, make_env: 
                         ended.add(k)
     for extra in envs[1:]:
         extra.close()
-    successes = [f >= 0 for f in first]
-    n_ok = sum(successes)
-    result = EvalResult(episodes=episodes, success_rate=n_ok / episodes, success_ci=wilson_interval(n_ok, episodes),
-                        mean_return=float(np.mean(returns)), std_return=float(np.std(returns)), successes=successes,
-                        first_success_step=first, success_at_last_step=float(np.mean(last)))
+    result = EvalResult.of(returns, first, last)
     records.sort()
     norms = np.array([n for _, _, n in records])
     return AttackEval(result, threat, float(norms.max()), float(norms.mean()), len(norms), records)

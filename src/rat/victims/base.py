@@ -138,7 +138,7 @@ class VictimPolicy:
 
     def __init__(self, victim: Victim):
         self.victim = victim
-        self.device = next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, nn.Module) else "cpu"
+        self.device = victim_device(victim)
         self.context = victim.initial_context(1)
         self._last: tuple[torch.Tensor, torch.Tensor] | None = None
 
@@ -164,6 +164,11 @@ class VictimPolicy:
             obs, action = self._last
             self.context = self.victim.update_context(self.context, obs, action, torch.tensor([float(reward)]))
             self._last = None
+
+
+def victim_device(victim: Victim) -> torch.device | str:
+    """Where a victim's weights are (``"cpu"`` for one without any)."""
+    return next(iter(victim.parameters()), torch.empty(0)).device if isinstance(victim, nn.Module) else "cpu"
 
 
 def numpy_policy(victim: Victim) -> VictimPolicy:
