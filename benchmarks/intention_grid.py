@@ -2,9 +2,10 @@
 oracle and labels, several seeds: success every 10k steps and at the end.
 
 Each cell is the command a user would run, with the intention-policy settings of the `cpu` preset
-of a RAT run (SAC batch 256, at most 30 reward epochs and 400 updates a member a round, the label
-budget spent in equal rounds every 5,000 steps by 90% of the run); the default rows take the
-paper's label counts. Cells run as subprocesses, ``--jobs`` at a time, one
+of a RAT run for that target, passed as ``--set`` wherever they differ from PEBBLE's defaults (SAC batch
+256, at most 30 reward epochs and 400 updates a member a round, the label budget spent in equal rounds
+every 5,000 steps by 90% of the run; for reach also standardised r̂ inputs and queries from the last
+20 episodes); the default rows take the paper's label counts. Cells run as subprocesses, ``--jobs`` at a time, one
 torch thread each; a finished cell (its ``report.json``) is skipped, an unfinished one resumes, so
 the grid can span sessions.
 
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import os
 import subprocess
@@ -31,23 +33,34 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from rat.experiments.presets import rat_config
+from rat.preferences.pebble import PebbleConfig
 
 #: reach (the manipulation target) and two opposite behaviours (drawer-close, faucet-open), at the paper's label counts
 DEFAULT_ROWS = ("drawer-open-v3:reach:9000", "drawer-open-v3:opposite:3000", "faucet-close-v3:opposite:5000")
 REACHED, KEPT = 0.5, 0.5
 
 
+def preset_assignments(config, default, prefix: str = "pebble") -> list[str]:
+    """``--set`` assignments for every field in which ``config`` differs from ``default`` (nested groups too)."""
+    out = []
+    for f in dataclasses.fields(config):
+        value, base = getattr(config, f.name), getattr(default, f.name)
+        if dataclasses.is_dataclass(value):
+            out += preset_assignments(value, base, f"{prefix}.{f.name}")
+        elif value != base:
+            text = "none" if value is None else json.dumps(value) if isinstance(value, (bool, list, tuple, dict)) else value
+            out += ["--set", f"{prefix}.{f.name}={text}"]
+    return out
+
+
 def command(task: str, target: str, labels: int, mode: str, seed: int, steps: int, out: Path) -> list[str]:
-    """The `rat intention train` command of one cell (the `cpu` preset's intention settings)."""
-    pebble = rat_config("cpu", budget=labels, steps=steps, target=target).pebble
-    cmd = [sys.executable, "-m", "rat.cli", "intention", "train", "--task", task, "--target", target, "--steps", str(steps), "--seed", str(seed),
-           "--batch-size", str(pebble.sac.batch_size), "--reward-epochs", str(pebble.reward.max_epochs),
-           "--every", str(pebble.feedback_every), "--out", str(out)]
-    if pebble.reward.max_updates is not None:
-        cmd += ["--set", f"pebble.reward.max_updates={pebble.reward.max_updates}"]
-    if mode == "oracle":
-        return cmd + ["--oracle", "--budget", "0"]
-    return cmd + ["--budget", str(labels), "--per-round", str(pebble.per_round)]
+    """The `rat intention train` command of one cell: every PEBBLE setting of the `cpu` preset for this target
+    that differs from PEBBLE's defaults (SAC batch, reward-round caps, rounds, and the manipulation settings)."""
+    oracle = mode == "oracle"
+    pebble = rat_config("cpu", budget=0 if oracle else labels, steps=steps, target=target).pebble
+    cmd = [sys.executable, "-m", "rat.cli", "intention", "train", "--task", task, "--target", target, "--steps", str(steps),
+           "--seed", str(seed), "--out", str(out), *preset_assignments(pebble, PebbleConfig())]
+    return cmd + (["--oracle"] if oracle else [])
 
 
 def cell_dir(out: Path, task: str, target: str, labels: int, mode: str, seed: int) -> Path:
