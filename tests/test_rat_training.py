@@ -150,6 +150,14 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     pi_500, pi_1000 = (load_checkpoint(tmp_path / "run" / "snapshots" / f"adversary-{n}")[0]["intention"]
                        for n in (500, 1000))
     assert not torch.equal(pi_500["trunk.0.weight"], pi_1000["trunk.0.weight"])  # each snapshot holds its own
+    # a snapshot loads as itself (`rat attack eval RUN/snapshots/adversary-500`): its adversary, its π_θ, the run's metadata
+    from rat.attacks.rat import load_saved
+
+    snapshot = load_checkpoint(tmp_path / "run" / "snapshots" / "adversary-500")[0]["adversary"]
+    adversary_500, intention_500, meta_500 = load_saved(tmp_path / "run" / "snapshots" / "adversary-500.json")
+    assert meta_500["snapshot_step"] == 500 and meta_500["rat"] == meta["rat"] and "snapshot_step" not in meta
+    assert all(torch.equal(adversary_500.state_dict()[k], snapshot[k]) for k in snapshot)
+    assert torch.equal(intention_500.state_dict()["trunk.0.weight"], pi_500["trunk.0.weight"])
     # a run written before a setting existed resumes while that setting is at its default, and only then
     config_path = tmp_path / "run" / "config.json"
     saved = __import__("json").loads(config_path.read_text())

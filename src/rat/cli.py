@@ -591,7 +591,8 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
                    "(1: one episode at a time, as a video is)")
 @click.option("--json", "as_json", is_flag=True)
 def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, lockstep, as_json) -> None:
-    """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour."""
+    """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour.
+    RUN may also name one adversary a RAT run saved: RUN/adversary-last, or RUN/snapshots/adversary-STEP."""
     from rat.experiments.runner import evaluate_saved_attack
     from rat.runs import check_writable_file
 
@@ -613,7 +614,8 @@ def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, l
             "mean_perturbation": attacked.mean_perturbation, "within_budget": attacked.within_budget,
             "observations": attacked.steps, "record": str(record) if record else None}))
         return
-    click.echo(f"{r['method']} against {r['victim']} on {r['task']}, target '{r['target']}'")
+    snapshot = f" (the snapshot at step {r['snapshot_step']})" if r["snapshot_step"] is not None else ""
+    click.echo(f"{r['method']}{snapshot} against {r['victim']} on {r['task']}, target '{r['target']}'")
     click.echo(f"  attacked: {attacked.summary()}")
     if r["refined_gap"] is not None:
         click.echo(f"  Δ refined towards π_θ; the gap left to its actions, mean over the observations: {r['refined_gap']:.3f}")

@@ -145,11 +145,18 @@ def check_reward(attack: Attack, reward: str) -> str:
     return reward
 
 
+SNAPSHOT = "adversary-snapshot"  #: checkpoint kind of a RAT run's snapshots, ``<run>/snapshots/adversary-<step>``
+
+
 def saved_attack_meta(run: str | Path) -> dict[str, Any]:
-    """The metadata of the attack saved in a run directory (``<run>/adversary.json``)."""
+    """The metadata of the attack saved in a run directory (``<run>/adversary.json``), or of one saved attack in
+    it; a RAT snapshot has its run's, with ``snapshot_step`` added."""
     path = Path(run)
     path = path / "adversary" if path.is_dir() else path
-    meta = read_meta(path).get("meta")
+    header = read_meta(path)
+    if header.get("kind") == SNAPSHOT:  # saved with its step alone: the rest is the run's
+        return saved_attack_meta(saved_attack_path(path).parent.parent) | {"snapshot_step": header["meta"]["step"]}
+    meta = header.get("meta")
     budget = meta.get("rat", meta) if isinstance(meta, dict) else {}
     missing = [k for k in ("target",) if not isinstance(meta, dict) or k not in meta]
     missing += [k for k in ("epsilon", "norm") if not isinstance(budget, dict) or k not in budget]

@@ -34,7 +34,7 @@ import torch
 
 from rat import seeds
 from rat.agents.networks import TanhGaussianActor
-from rat.attacks.base import AttackSetup, register_attack
+from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack, saved_attack_meta
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
 from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
                                intention_gaussian, saturation)
@@ -482,7 +482,7 @@ class RATTrainer:
     def evaluate(self) -> dict[str, float]:
         """The attack now, and a snapshot of the adversary with the π_θ it imitated (for selection by r̂)."""
         res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
-        save_checkpoint(self.snapshots / f"adversary-{self.step}", "adversary-snapshot",
+        save_checkpoint(self.snapshots / f"adversary-{self.step}", SNAPSHOT,
                         {"adversary": self.adversary.state_dict(), "intention": self.objective().intention.state_dict()},
                         {"step": self.step})
         # π_θ is a candidate once it has learnt from r̂: at the first query round it is still the pre-training
@@ -631,7 +631,7 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
     """
     candidates = {"last": ({k: v.clone() for k, v in adversary.state_dict().items()}, None)}
     for path in sorted(snapshots.glob("adversary-*.json"), key=lambda p: int(p.stem.split("-")[1])):
-        state = load_checkpoint(path, "adversary-snapshot")[0]
+        state = load_checkpoint(path, SNAPSHOT)[0]
         candidates[path.stem.split("-")[1]] = (state["adversary"], state.get("intention"))
     scores = {}
     for name, (state, _) in candidates.items():
@@ -651,12 +651,14 @@ def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
 
 
 def load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, dict]:
-    """The adversary of ``<run>/adversary`` (or of another saved adversary file), the π_θ it imitated
-    (None if the run predates saving it) and the metadata."""
+    """The adversary of ``<run>/adversary`` (or of another saved adversary file, a snapshot
+    ``<run>/snapshots/adversary-<step>`` too), the π_θ it imitated (None if the run predates saving it) and
+    the metadata."""
     path = Path(path)
     if path.is_dir():
         path = path / "adversary"
-    state, meta = load_checkpoint(path, "adversary")
+    meta = saved_attack_meta(path)
+    state, _ = load_checkpoint(path, SNAPSHOT if "snapshot_step" in meta else "adversary")
     adversary = Adversary(int(meta["obs_dim"]), int(meta["adversary_hidden"]))
     adversary.load_state_dict(state["adversary"])
     adversary.eval().requires_grad_(False)

@@ -62,7 +62,8 @@ def train_attack(method: str, setup: AttackSetup, config, out: str | Path) -> At
 def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
                           progress: bool = True, video_episodes=2, refine_steps: int | None = None,
                           refine_loss: str | None = None, lockstep: int = 32) -> dict:
-    """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``) and, for comparison, the clean victim.
+    """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``, or one RAT snapshot,
+    ``<run>/snapshots/adversary-<step>``, with the π_θ it imitated) and, for comparison, the clean victim.
 
     ``refine_steps`` and ``refine_loss`` (RAT only) override the run's refinement of Δ towards π_θ (0 steps:
     the network's Δ alone); a refined attack runs ``lockstep`` episodes side by side (see
@@ -91,7 +92,8 @@ def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, vi
     clean = evaluate_clean(victim, make_task(meta["task"], seed=seed), target, episodes, seed)
     return {"victim": meta["victim"], "task": meta["task"], "target": meta["target"],
             "method": meta.get("method", "rat"), "epsilon": threat.epsilon, "norm": threat.norm, "attack": attacked,
-            "clean": clean, "refined_gap": float(np.mean(gaps)) if gaps else None}
+            "clean": clean, "refined_gap": float(np.mean(gaps)) if gaps else None,
+            "snapshot_step": meta.get("snapshot_step")}
 
 
 def film_attack(run: str | Path, path: str | Path, seed: int = 0, episodes: int = 10, show: int = 2) -> list[bool]:
