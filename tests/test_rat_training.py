@@ -158,6 +158,18 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     assert meta_500["snapshot_step"] == 500 and meta_500["rat"] == meta["rat"] and "snapshot_step" not in meta
     assert all(torch.equal(adversary_500.state_dict()[k], snapshot[k]) for k in snapshot)
     assert torch.equal(intention_500.state_dict()["trunk.0.weight"], pi_500["trunk.0.weight"])
+    # ... before its run has finished (its own metadata), and as written before snapshots kept more than their step
+    import shutil
+
+    (tmp_path / "running" / "snapshots").mkdir(parents=True)
+    for suffix in (".json", ".safetensors"):
+        shutil.copy(tmp_path / "run" / "snapshots" / f"adversary-500{suffix}", tmp_path / "running" / "snapshots")
+    assert load_saved(tmp_path / "running" / "snapshots" / "adversary-500")[2] == meta_500
+    save_checkpoint(tmp_path / "run" / "snapshots" / "adversary-old", "adversary-snapshot",
+                    load_checkpoint(tmp_path / "run" / "snapshots" / "adversary-500")[0], {"step": 500})
+    assert load_saved(tmp_path / "run" / "snapshots" / "adversary-old")[2] == meta_500 | {"selected_step": step}
+    for suffix in (".json", ".safetensors"):  # not a snapshot the run took: gone before it resumes below
+        (tmp_path / "run" / "snapshots" / f"adversary-old{suffix}").unlink()
     # a run written before a setting existed resumes while that setting is at its default, and only then
     config_path = tmp_path / "run" / "config.json"
     saved = __import__("json").loads(config_path.read_text())

@@ -154,8 +154,9 @@ def saved_attack_meta(run: str | Path) -> dict[str, Any]:
     path = Path(run)
     path = path / "adversary" if path.is_dir() else path
     header = read_meta(path)
-    if header.get("kind") == SNAPSHOT:  # saved with its step alone: the rest is the run's
-        return saved_attack_meta(saved_attack_path(path).parent.parent) | {"snapshot_step": header["meta"]["step"]}
+    if header.get("kind") == SNAPSHOT:  # its own metadata and step (a snapshot written before 2026-12-03: its step alone)
+        own = header["meta"] if "target" in header["meta"] else saved_attack_meta(saved_attack_path(path).parent.parent)
+        return {k: v for k, v in own.items() if k != "step"} | {"snapshot_step": header["meta"]["step"]}
     meta = header.get("meta")
     budget = meta.get("rat", meta) if isinstance(meta, dict) else {}
     missing = [k for k in ("target",) if not isinstance(meta, dict) or k not in meta]

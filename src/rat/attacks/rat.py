@@ -361,6 +361,11 @@ class RATTrainer:
     def step(self) -> int:
         return self.learner.step
 
+    def meta(self) -> dict:
+        """What a saved adversary records beside its weights: the configuration, victim, task and target, its shape."""
+        return {"rat": to_jsonable(self.config), **self.setup.describe, "target": self.target.name,
+                "obs_dim": self.adversary.obs_dim, "adversary_hidden": self.config.adversary_hidden, "method": "rat"}
+
     def objective(self) -> Imitation:
         """What the adversary imitates now: π_θ as it is (the critic is replaced when PEBBLE resets it), or,
         with ``imitate="best"``, the π_θ that scored best under r̂ at an evaluation."""
@@ -484,7 +489,7 @@ class RATTrainer:
         res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
         save_checkpoint(self.snapshots / f"adversary-{self.step}", SNAPSHOT,
                         {"adversary": self.adversary.state_dict(), "intention": self.objective().intention.state_dict()},
-                        {"step": self.step})
+                        self.meta() | {"step": self.step})
         # π_θ is a candidate once it has learnt from r̂: at the first query round it is still the pre-training
         # explorer, which a young r̂ can score above the learning π_θ for tens of thousands of steps
         learning = self.learner.reward_ready and self.step > self.config.pebble.warm_up
@@ -549,8 +554,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
 
     # --- results -------------------------------------------------------------------------------------
     adversary = trainer.adversary
-    meta = {"rat": to_jsonable(cfg), **setup.describe, "target": target.name, "obs_dim": adversary.obs_dim,
-            "adversary_hidden": cfg.adversary_hidden, "method": "rat"}
+    meta = trainer.meta()
     # π_θ as the adversary imitated it, saved beside it: refinement (refine_steps) aims at its actions
     pi_theta = trainer.objective().intention
     details: dict = {"ablation": cfg.ablation, "queries_asked": trainer.learner.asked, **trainer.counters}
