@@ -154,10 +154,12 @@ def saved_attack_meta(run: str | Path) -> dict[str, Any]:
     path = Path(run)
     path = path / "adversary" if path.is_dir() else path
     header = read_meta(path)
-    if header.get("kind") == SNAPSHOT:  # its own metadata and step (a snapshot written before 2026-12-03: its step alone)
-        own = header["meta"] if "target" in header["meta"] else saved_attack_meta(saved_attack_path(path).parent.parent)
-        return {k: v for k, v in own.items() if k != "step"} | {"snapshot_step": header["meta"]["step"]}
     meta = header.get("meta")
+    if header.get("kind") == SNAPSHOT and isinstance(meta, dict):  # its own metadata and step
+        step = {"snapshot_step": meta.get("step")}
+        if "target" not in meta:  # written before 2026-12-03, with its step alone: the rest is its run's
+            return saved_attack_meta(saved_attack_path(path).parent.parent) | step
+        meta = {k: v for k, v in meta.items() if k != "step"} | step
     budget = meta.get("rat", meta) if isinstance(meta, dict) else {}
     missing = [k for k in ("target",) if not isinstance(meta, dict) or k not in meta]
     missing += [k for k in ("epsilon", "norm") if not isinstance(budget, dict) or k not in budget]
