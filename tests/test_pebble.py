@@ -105,11 +105,13 @@ def test_a_resumed_learner_reuses_stored_labels_and_asks_nothing_twice(tmp_path)
     drive(learner, env, 300)
     state = learner.state_dict()  # a checkpoint at step 300: one round done
     drive(learner, env, 400)  # a second round is stored ...
+    meta = learner.checkpoint_meta()
     learner.store.close()  # ... then the process dies
 
-    resumed, env2 = make(tmp_path, cfg)
+    resumed, env2 = make(tmp_path, cfg, name="moved")  # its directory renamed since: the checkpoint names the source
     resumed.load_state_dict(state)
-    assert resumed.step == 300 and resumed.asked == 30
+    resumed.restore_meta(meta)
+    assert resumed.step == 300 and resumed.asked == 30 and resumed.source == "run"
     drive(resumed, env2, 700)
     assert resumed.asked == 70 and resumed.store.count("run") == 70  # the second round's labels were reused
     assert [r["round"] for r in resumed.store.rounds("run")] == [0, 1, 2]

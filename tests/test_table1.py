@@ -165,3 +165,36 @@ def test_the_reports_of_a_grid_stopped_part_way_come_from_its_finished_cells(tmp
     with pytest.raises(RatError, match="is not a grid record"):  # a grid run into it refuses too, before any cell
         run_grid(random_cells([2]), SMOKE, tmp_path, jobs=1, echo=lambda _: None)
     assert (tmp_path / "grid.json").read_text() == "{not json" and not cells[2].directory(tmp_path).exists()
+
+
+@pytest.mark.slow
+def test_a_finished_rat_run_is_taken_in_as_its_cell_and_keeps_its_numbers(tmp_path):
+    from dataclasses import replace
+
+    from rat.attacks import ThreatModel
+    from rat.experiments.runner import attack_setup, train_attack
+    from rat.experiments.table1 import cell_config
+
+    preset = replace(SMOKE, rat_steps=1500)
+    cell = Cell("drawer-open-v3", "manipulation", "rat", 0)
+    setup = attack_setup("zoo:drawer-open-v3", "reach", ThreatModel(preset.epsilon, preset.norm), 0, progress=False)
+    alone = tmp_path / "alone"  # `rat attack train` with the cell's settings, checkpointing more often
+    report = train_attack("rat", setup, replace(cell_config(cell, preset), checkpoint_every=500), alone)
+    trained = (alone / "metrics.csv").read_text()
+
+    grid = tmp_path / "grid"
+    with pytest.raises(RatError, match=r"is no RAT cell of this grid"):  # seed 0's run, a grid of seed 1
+        run_grid([Cell("drawer-open-v3", "manipulation", "rat", 1)], preset, grid, echo=lambda _: None, adopt=[alone])
+    with pytest.raises(RatError, match=r"differs in: rat\.total_steps = 1500 in the run, 2000 now"):
+        run_grid([cell], replace(preset, rat_steps=2000), tmp_path / "other", echo=lambda _: None, adopt=[alone])
+    assert not cell.directory(grid).exists() and not cell.directory(tmp_path / "other").exists()  # nothing copied
+
+    said = []
+    result = run_grid([cell], preset, grid, jobs=1, echo=said.append, adopt=[alone])
+    assert f"{cell.key}: adopted '{alone}'" in said
+    [row] = result["ran"]
+    assert row["adopted_from"] == str(alone.resolve())
+    assert row["attack_success_rate"] == report.attack_success_rate and row["labels"] == report.labels
+    assert (cell.directory(grid) / "run" / "metrics.csv").read_text() == trained  # evaluated, not trained again
+    with open(grid / "results.csv") as f:
+        assert next(csv.DictReader(f))["adopted_from"] == str(alone.resolve())

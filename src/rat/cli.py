@@ -650,8 +650,12 @@ def _csv(kind):
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table1"), show_default=True)
 @click.option("--report-only", is_flag=True,
               help="run nothing: write the reports of the grid in --out from its finished cells (a grid stopped part-way)")
+@click.option("--adopt", multiple=True, type=click.Path(path_type=Path),
+              help="a finished `rat attack train` run to take in as the RAT cell it is (same victim, target, seed "
+                   "and configuration), instead of training that cell; repeatable")
 @click.pass_context
-def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out, report_only) -> None:
+def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out, report_only,
+                 adopt) -> None:
     """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
     from rat.experiments.presets import GRID_PRESETS
     from rat.experiments.table1 import grid_cells, grid_reports, read_grid, run_grid
@@ -670,8 +674,7 @@ def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ra
     grid = GRID_PRESETS[preset].with_labels(counts) if counts else GRID_PRESETS[preset]
     cells = grid_cells(tasks, scenarios, methods, seeds)
     click.echo(f"{len(cells)} cells, preset '{preset}', {'Ray at ' + ray_address if ray_address else f'{jobs} processes'}")
-    result = run_grid(cells, grid, out, jobs, ray_address, echo=click.echo,
-                      plugins=ctx.obj["plugins"])
+    result = run_grid(cells, grid, out, jobs, ray_address, echo=click.echo, plugins=ctx.obj["plugins"], adopt=adopt)
     click.echo(f"ran {len(result['ran'])}, skipped {len(result['skipped'])} finished, failed {len(result['failed'])}; "
                f"{out / 'table1.md'}, {out / 'results.csv'}")
     for row in result["failed"]:

@@ -117,18 +117,24 @@ def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+#: settings a run may change when it resumes: where it runs, and how often it checkpoints (a checkpoint
+#: saves the random streams and reads none, so a run cut into more pieces computes the same numbers)
+UNCOUNTED = ("device", "checkpoint_every")
+
+
 def config_differences(saved: dict[str, Any], now: dict[str, Any], defaults: dict[str, Any] | None = None
                        ) -> list[str]:
     """The settings in which a run directory's configuration and this one differ, as ``name = run vs now``.
 
-    ``device`` never counts (a run may resume on another machine). A setting the run did not record
-    (it was written by an older version) counts only if it is set now to other than its default.
+    Settings that change nothing a run computes never count (:data:`UNCOUNTED`: a run may resume on another
+    machine, or checkpoint more or less often). A setting the run did not record (it was written by an older
+    version) counts only if it is set now to other than its default.
     """
     saved, now = _flatten(saved), _flatten(now)
     defaults = _flatten(defaults) if defaults is not None else {}
     differences = []
     for key in sorted(set(saved) | set(now)):
-        if key.rsplit(".", 1)[-1] == "device":
+        if key.rsplit(".", 1)[-1] in UNCOUNTED:
             continue
         if key not in saved and key in defaults and now.get(key) == defaults[key]:
             continue
@@ -136,6 +142,13 @@ def config_differences(saved: dict[str, Any], now: dict[str, Any], defaults: dic
             differences.append(f"{key} = {json.dumps(saved.get(key, '<not recorded>'))} in the run, "
                                f"{json.dumps(now.get(key, '<not set>'))} now")
     return differences
+
+
+def differences_from_run(directory: str | Path, config: Any) -> list[str]:
+    """:func:`config_differences` between the configuration a run directory was started with and ``config``
+    (a dataclass, or a dict holding some), settings added since the run counting only away from their defaults."""
+    saved = json.loads((Path(directory) / "config.json").read_text())
+    return config_differences(saved, to_jsonable(config), _defaults(config))
 
 
 def _defaults(config: Any) -> Any:
@@ -242,8 +255,7 @@ class Run:
         self.config = to_jsonable(config)
         config_path = self.dir / "config.json"
         if config_path.exists():
-            saved = json.loads(config_path.read_text())
-            differences = config_differences(saved, self.config, _defaults(config))
+            differences = differences_from_run(self.dir, config)
             if differences:
                 raise RatError(f"run directory '{self.dir}' holds a different configuration (differs in: "
                                f"{'; '.join(differences)}); pick a new --out directory or repeat the original options")

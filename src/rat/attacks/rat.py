@@ -507,6 +507,7 @@ class RATTrainer:
 
     def load_state_dict(self, state: dict, meta: dict) -> None:
         self.learner.load_state_dict(state["learner"])
+        self.learner.restore_meta(meta)
         self.adversary.load_state_dict(state["adversary"])
         self.weighting.load_state_dict(state["weighting"])
         self.adversary_opt.load_state_dict(state["adversary_opt"])
@@ -524,7 +525,7 @@ class RATTrainer:
             self.best["critic"].load_state_dict(b["critic"])
 
     def checkpoint_meta(self) -> dict:
-        return {}
+        return self.learner.checkpoint_meta()
 
 
 def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboard: bool = False) -> AttackReport:

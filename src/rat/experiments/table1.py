@@ -42,6 +42,7 @@ METHODS = ("pa-ad-oracle", "pa-ad", "sa-rl-oracle", "sa-rl", "random", "rat")  #
 METHOD_NAMES = {"pa-ad-oracle": "PA-AD (oracle)", "pa-ad": "PA-AD", "sa-rl-oracle": "SA-RL (oracle)",
                 "sa-rl": "SA-RL", "random": "Random", "rat": "RAT"}
 SCENARIOS = {"manipulation": "reach", "opposite": "opposite"}  # the paper's scenario -> target behaviour
+ADOPTED = "adopted.json"  #: in a cell's directory: the ``rat attack train`` run it took in (see adopt_run)
 
 
 def scenario_target(scenario: str) -> str:
@@ -136,9 +137,8 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
     from rat.plugins import load_plugins
 
     load_plugins(plugins)
-    from rat.attacks import ThreatModel, get_attack
-    from rat.attacks.rl import PPOConfig
-    from rat.experiments.runner import attack_config, attack_setup, train_attack
+    from rat.attacks import ThreatModel
+    from rat.experiments.runner import attack_setup, train_attack
 
     torch.set_num_threads(1)  # one core per cell; cells run side by side
     directory = cell.directory(Path(out))
@@ -152,19 +152,7 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
             raise RatError(f"cell {cell.key} needs the labels of {cell.label_source().key}, which has not run")
     setup = attack_setup(f"zoo:{cell.task}", target, ThreatModel(preset.epsilon, preset.norm), cell.seed, reward,
                          labels, progress=False)
-    if method == "rat":
-        config = attack_config("rat", preset.rat_preset, preset.labels_for(cell), preset.rat_steps, target,
-                               epsilon=preset.epsilon, norm=preset.norm, seed=cell.seed,
-                               pebble_overrides=preset.pebble_overrides, spend_by=preset.spend_by,
-                               final_eval_episodes=preset.episodes,
-                               **preset.overrides)
-    else:
-        attack = get_attack(method)
-        fields = {f.name for f in dataclasses.fields(attack.config)} if attack.config else set()
-        overrides = {"final_eval_episodes": preset.episodes} if "final_eval_episodes" in fields else {}
-        steps = preset.ppo_steps if attack.config is PPOConfig else None
-        config = attack_config(method, preset.ppo_preset, steps=steps, **overrides)
-    report = train_attack(method, setup, config, directory / "run")
+    report = train_attack(method, setup, cell_config(cell, preset), directory / "run")
     row = {**asdict(cell), "attack_success_rate": report.attack_success_rate,
            "ci_low": report.attack_success_ci[0], "ci_high": report.attack_success_ci[1],
            "episodes": report.episodes, "labels": report.labels,
@@ -176,10 +164,77 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "network_attack_success_rate": report.details.get("network_attack_success_rate"),  # when Δ is refined
            "refined_gap": report.details.get("refined_gap"),  # what refinement left of ‖μ_ν(s̃) − π_θ(s)‖
            "clean_success_rate": report.clean_success_rate}
+    if (directory / ADOPTED).exists():  # trained outside the grid, by `rat attack train` (see adopt_run)
+        row["adopted_from"] = json.loads((directory / ADOPTED).read_text())["run"]
     tmp = directory / "result.json.tmp"
     tmp.write_text(json.dumps(row, indent=1))
     os.replace(tmp, directory / "result.json")  # written last: the cell is finished
     return row
+
+
+def cell_config(cell: Cell, preset: GridPreset):
+    """The configuration a cell's attack trains with under ``preset``."""
+    from rat.attacks import get_attack
+    from rat.attacks.rl import PPOConfig
+    from rat.experiments.runner import attack_config
+
+    method, _ = column(cell.method)
+    if method == "rat":
+        return attack_config("rat", preset.rat_preset, preset.labels_for(cell), preset.rat_steps,
+                             scenario_target(cell.scenario), epsilon=preset.epsilon, norm=preset.norm, seed=cell.seed,
+                             pebble_overrides=preset.pebble_overrides, spend_by=preset.spend_by,
+                             final_eval_episodes=preset.episodes, **preset.overrides)
+    attack = get_attack(method)
+    fields = {f.name for f in dataclasses.fields(attack.config)} if attack.config else set()
+    overrides = {"final_eval_episodes": preset.episodes} if "final_eval_episodes" in fields else {}
+    steps = preset.ppo_steps if attack.config is PPOConfig else None
+    return attack_config(method, preset.ppo_preset, steps=steps, **overrides)
+
+
+def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str | Path) -> Cell:
+    """Take a finished ``rat attack train`` run into the grid as the RAT cell it is, instead of training that cell.
+
+    The run must be RAT against ``zoo:<task>`` of one of ``cells``, with the configuration that cell would
+    train with (settings that change nothing computed, such as ``checkpoint_every``, may differ): then it *is*
+    that cell's run, and it is copied into the cell's directory, where the grid evaluates it like a resumed cell
+    and its labels serve the preference-based baselines. The cell's row names the run (``adopted_from``).
+    Anything else is refused in one line, and nothing is copied.
+    """
+    import shutil
+
+    from rat.attacks import ThreatModel
+    from rat.envs.tasks import episode_length
+    from rat.experiments.runner import attack_setup
+    from rat.runs import differences_from_run
+
+    run, out = Path(run), Path(out)
+    saved_config, report = run / "config.json", run / "report.json"
+    if not saved_config.exists():
+        raise RatError(f"'{run}' is not a run directory (no config.json); give the --out of `rat attack train`")
+    if not report.exists():
+        raise RatError(f"the run in '{run}' has not finished (no report.json); resume it with its own command first")
+    saved, done = json.loads(saved_config.read_text()), json.loads(report.read_text())
+    matches = [c for c in cells if column(c.method)[0] == "rat" and f"zoo:{c.task}" == saved.get("victim")
+               and scenario_target(c.scenario) == done.get("target") and c.seed == done.get("seed")
+               and column(c.method)[1] == done.get("reward")]
+    if "rat" not in saved or not matches:
+        raise RatError(f"'{run}' ({done.get('method')} against {saved.get('victim')}, target {done.get('target')}, "
+                       f"seed {done.get('seed')}) is no RAT cell of this grid; name its task, scenario and seed")
+    cell = matches[0]
+    if cell.directory(out).exists():
+        raise RatError(f"cell {cell.key} already has a run in '{cell.directory(out)}'; adopt into a new --out, "
+                       "or remove that cell's directory")
+    setup = attack_setup(f"zoo:{cell.task}", scenario_target(cell.scenario), ThreatModel(preset.epsilon, preset.norm),
+                         cell.seed, column(cell.method)[1], progress=False)
+    config = cell_config(cell, preset)
+    config = dataclasses.replace(config, horizon=config.horizon or episode_length(setup.make_env(cell.seed)))  # as run
+    differences = differences_from_run(run, {"rat": config, **setup.describe})
+    if differences:
+        raise RatError(f"'{run}' was not trained as cell {cell.key} of this grid would be (differs in: "
+                       f"{'; '.join(differences)}); run that cell in the grid instead")
+    shutil.copytree(run, cell.directory(out) / "run", ignore=shutil.ignore_patterns("run.lock", "*.tmp"))
+    (cell.directory(out) / ADOPTED).write_text(json.dumps({"run": str(run.resolve())}, indent=1))
+    return cell
 
 
 def _guarded(cell: Cell, preset: GridPreset, out: str, plugins: tuple[str, ...] = ()) -> dict:
@@ -199,13 +254,15 @@ def finished(cell: Cell, out: Path) -> dict | None:
 
 
 def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int = 2, ray_address: str | None = None,
-             echo: Callable[[str], None] = print, heartbeat: float = 300.0, plugins: tuple[str, ...] = ()) -> dict:
+             echo: Callable[[str], None] = print, heartbeat: float = 300.0, plugins: tuple[str, ...] = (),
+             adopt: Iterable[str | Path] = ()) -> dict:
     """Run every unfinished cell (RAT cells before the baselines that read their labels) and write the reports.
 
     The reports (``results.csv``, ``table1.md``, curves) cover every finished cell the directory's grid
     has held (``grid.json``), so a grid can grow one method or seed at a time.
     Every ``heartbeat`` seconds without a finished cell, ``echo`` gets the step each running cell has reached.
-    ``plugins`` (see :mod:`rat.plugins`) are imported in every process that runs cells.
+    ``plugins`` (see :mod:`rat.plugins`) are imported in every process that runs cells. ``adopt`` names finished
+    ``rat attack train`` runs that are RAT cells of this grid (see :func:`adopt_run`), taken in before it runs.
     Returns ``{"ran": [...], "skipped": [...], "failed": [...], "rows": [...]}``.
     """
     out = Path(out)
@@ -220,6 +277,8 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
                            "give a new --out or the same preset")
         record["cells"] = sorted(set(before["cells"]) | set(record["cells"]))
     grid_file.write_text(json.dumps(record, indent=1))
+    for run in adopt:
+        echo(f"{adopt_run(run, cells, preset, out).key}: adopted '{run}'")
 
     todo = [c for c in cells if finished(c, out) is None]
     skipped = [c.key for c in cells if c not in todo]
@@ -343,7 +402,8 @@ def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
     """``results.csv``, ``table1.md`` and ``curves-<task>.png`` from the finished cells."""
     fields = ["task", "scenario", "method", "seed", "attack_success_rate", "ci_low", "ci_high", "episodes", "labels",
               "max_perturbation", "epsilon", "norm", "preset", "minutes", "train_minutes", "victim", "victim_method",
-              "last_attack_success_rate", "network_attack_success_rate", "refined_gap", "clean_success_rate"]
+              "last_attack_success_rate", "network_attack_success_rate", "refined_gap", "clean_success_rate",
+              "adopted_from"]
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")
         writer.writeheader()

@@ -156,10 +156,11 @@ class IntentionTrainer:
 
     def load_state_dict(self, state: dict, meta: dict) -> None:
         self.learner.load_state_dict(state["learner"])
+        self.learner.restore_meta(meta)
         restore_rng_state(self.rng, state["rng"])
 
     def checkpoint_meta(self) -> dict:
-        return {}
+        return self.learner.checkpoint_meta()
 
 
 def train_intention(config: IntentionConfig, out: str | Path, progress: bool = True, tensorboard: bool = False,

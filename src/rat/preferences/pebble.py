@@ -283,6 +283,17 @@ class PebbleLearner:
             "reward_stats": np.asarray(self.reward_stats, np.float64),
         }
 
+    def checkpoint_meta(self) -> dict:
+        """What a checkpoint keeps beside the tensors: the name this run's labels carry in its store."""
+        return {"label_source": self.source}
+
+    def restore_meta(self, meta: dict) -> None:
+        """Read the labels under the name they were asked by (:meth:`checkpoint_meta`), so a run moved or copied
+        to another directory resumes with its own labels rather than asking them again. A checkpoint that does not
+        name it (written before it did) takes the store's one source, where it holds one."""
+        sources = [name for name, _ in self.store.sources()]
+        self.source = meta.get("label_source") or (sources[0] if len(sources) == 1 else self.source)
+
     def load_state_dict(self, state: dict) -> None:
         self.agent.load_state_dict(state["agent"])
         self.agent.load_optimizer_state(state["agent_optimizers"])
