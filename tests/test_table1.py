@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from rat.errors import RatError
 from rat.experiments.presets import GRID_PRESETS
@@ -175,7 +176,7 @@ def test_a_finished_rat_run_is_taken_in_as_its_cell_and_keeps_its_numbers(tmp_pa
     from rat.experiments.runner import attack_setup, train_attack
     from rat.experiments.table1 import cell_config
 
-    preset = replace(SMOKE, rat_steps=1500)
+    preset = replace(SMOKE, rat_steps=1500, baseline_reward="rat")
     cell = Cell("drawer-open-v3", "manipulation", "rat", 0)
     setup = attack_setup("zoo:drawer-open-v3", "reach", ThreatModel(preset.epsilon, preset.norm), 0, progress=False)
     alone = tmp_path / "alone"  # `rat attack train` with the cell's settings, checkpointing more often
@@ -190,11 +191,46 @@ def test_a_finished_rat_run_is_taken_in_as_its_cell_and_keeps_its_numbers(tmp_pa
     assert not cell.directory(grid).exists() and not cell.directory(tmp_path / "other").exists()  # nothing copied
 
     said = []
-    result = run_grid([cell], preset, grid, jobs=1, echo=said.append, adopt=[alone])
+    sa_rl = Cell("drawer-open-v3", "manipulation", "sa-rl", 0)  # attacks with the r̂ the RAT cell ended with
+    result = run_grid([cell, sa_rl], preset, grid, jobs=1, echo=said.append, adopt=[alone])
     assert f"{cell.key}: adopted '{alone}'" in said
-    [row] = result["ran"]
+    row, baseline = result["ran"]
     assert row["adopted_from"] == str(alone.resolve())
     assert row["attack_success_rate"] == report.attack_success_rate and row["labels"] == report.labels
     assert (cell.directory(grid) / "run" / "metrics.csv").read_text() == trained  # evaluated, not trained again
     with open(grid / "results.csv") as f:
-        assert next(csv.DictReader(f))["adopted_from"] == str(alone.resolve())
+        assert {r["method"]: r["adopted_from"] for r in csv.DictReader(f)} == {"rat": str(alone.resolve()), "sa-rl": ""}
+    run = cell.directory(grid) / "run"
+    assert baseline["method"] == "sa-rl" and baseline["labels"] == report.labels
+    assert json.loads((sa_rl.directory(grid) / "result.json").read_text())["labels"] == report.labels
+    assert json.loads((sa_rl.directory(grid) / "run" / "report.json").read_text())["details"]["reward_from_run"] == str(run)
+    assert not list(run.glob("labels-reward-seed*"))  # nothing learnt offline
+
+    from rat.checkpoint import load_checkpoint
+    from rat.preferences.offline import run_reward
+
+    ensemble, info = run_reward(run, 39, 4)
+    ended = load_checkpoint(run / "checkpoint")[0]["learner"]["ensemble"]
+    assert all(torch.equal(v, ended[k]) for k, v in ensemble.state_dict().items()) and len(info["label_ids"]) == 40
+    with pytest.raises(RatError, match="does not fit observations 12-d"):
+        run_reward(run, 12, 4)
+
+
+def test_a_baseline_given_a_run_that_has_not_finished_or_learnt_no_reward_is_refused(tmp_path):
+    from rat.preferences.offline import run_reward
+
+    (tmp_path / "config.json").write_text(json.dumps({"rat": {"pebble": {"oracle": True, "reward": {}}}}))
+    with pytest.raises(RatError, match="is not a finished RAT run"):
+        run_reward(tmp_path, 39, 4)
+    (tmp_path / "report.json").write_text("{}")
+    (tmp_path / "checkpoint.json").write_text("{}")
+    with pytest.raises(RatError, match="learnt no r̂ \\(it is an oracle run\\)"):
+        run_reward(tmp_path, 39, 4)
+    with pytest.raises(RatError, match="unknown baseline reward|baseline reward 'mine'"):
+        replace_preset(baseline_reward="mine")
+
+
+def replace_preset(**changes):
+    from dataclasses import replace
+
+    return replace(SMOKE, **changes)

@@ -488,7 +488,8 @@ THREAT = "rat.attacks.threat:ThreatModel"
 @click.option("--reward", type=click.Choice(["labels", "oracle", "none"]), default=None,
               help="learn from preference labels, the true target reward (oracle), or nothing [the attack's first]")
 @click.option("--labels", "labels_path", type=click.Path(path_type=Path), default=None,
-              help="a label store to learn r̂ from (SA-RL, PA-AD with --reward labels; e.g. a RAT run's labels.sqlite)")
+              help="SA-RL, PA-AD with --reward labels: a label store to learn r̂ from (e.g. a RAT run's "
+                   "labels.sqlite), or a finished RAT run's directory to attack with the r̂ it ended with")
 @config_option(THREAT, "epsilon", type=float, help="budget, raw observation units")
 @config_option(THREAT, "norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]))
 @click.option("--budget", type=int, default=None,
@@ -650,12 +651,15 @@ def _csv(kind):
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table1"), show_default=True)
 @click.option("--report-only", is_flag=True,
               help="run nothing: write the reports of the grid in --out from its finished cells (a grid stopped part-way)")
+@click.option("--baseline-reward", type=click.Choice(["offline", "rat"]), default="offline", show_default=True,
+              help="preference-based SA-RL and PA-AD: r̂ learnt offline from the RAT cell's labels, or the r̂ the RAT "
+                   "cell ended with (the same labels, learnt once)")
 @click.option("--adopt", multiple=True, type=click.Path(path_type=Path),
               help="a finished `rat attack train` run to take in as the RAT cell it is (same victim, target, seed "
                    "and configuration), instead of training that cell; repeatable")
 @click.pass_context
 def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ray_address, out, report_only,
-                 adopt) -> None:
+                 baseline_reward, adopt) -> None:
     """Run the grid task × scenario × method × seed (finished cells are skipped) and write table 1."""
     from rat.experiments.presets import GRID_PRESETS
     from rat.experiments.table1 import grid_cells, grid_reports, read_grid, run_grid
@@ -672,6 +676,7 @@ def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ra
             raise RatError(f"--labels '{item}' is not SCENARIO=N; e.g. --labels manipulation=3000,opposite=1000")
         counts[name.strip()] = int(count)
     grid = GRID_PRESETS[preset].with_labels(counts) if counts else GRID_PRESETS[preset]
+    grid = dataclasses.replace(grid, baseline_reward=baseline_reward)
     cells = grid_cells(tasks, scenarios, methods, seeds)
     click.echo(f"{len(cells)} cells, preset '{preset}', {'Ray at ' + ray_address if ray_address else f'{jobs} processes'}")
     result = run_grid(cells, grid, out, jobs, ray_address, echo=click.echo, plugins=ctx.obj["plugins"], adopt=adopt)

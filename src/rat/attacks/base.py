@@ -17,7 +17,7 @@ the ``rat.plugins`` entry-point group), ``rat attack train --method zero``, ``ra
 ``rat list attacks`` and the table-1 grid know it.
 
 Where the attack learns from is a property of one method, not a second name: ``reward`` is
-``labels`` (preference labels: RAT asks its labeller; the RL baselines read a label store),
+``labels`` (preference labels: RAT asks its labeller; the RL baselines read a label store, or a RAT run's own r̂),
 ``oracle`` (the true target reward) or ``none`` (it learns nothing).
 """
 
@@ -51,7 +51,8 @@ class AttackSetup:
         threat: the budget.
         seed: seeds everything of the attack: networks, its own draws, training episodes.
         reward: ``labels``, ``oracle`` or ``none`` (see the module docstring).
-        labels: a label store to learn r̂ from, for attacks that learn from labels offline.
+        labels: a label store to learn r̂ from, or a finished RAT run whose r̂ to use (attacks that learn from
+            labels offline).
         labeller: who answers preference queries, for attacks that ask (default: a scripted teacher).
         describe: JSON-able facts recorded in the run and its report (victim spec, victim task, task).
         progress: show progress bars.

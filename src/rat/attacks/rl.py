@@ -33,7 +33,7 @@ from rat.attacks.threat import Perturbation, ThreatModel
 from rat.envs.targets import RewardFn, TargetBehaviour
 from rat.errors import RatError
 from rat.loop import TrainingLoop
-from rat.preferences.offline import learn_reward, reward_source
+from rat.preferences.offline import learn_reward, reward_source, run_reward
 from rat.preferences.reward_model import RewardModelConfig
 from rat.reports import AttackReport
 from rat.runs import Run
@@ -294,12 +294,14 @@ class PPOAttack:
               reward_config: RewardModelConfig = RewardModelConfig()) -> AttackReport:
         if setup.reward == "labels" and setup.labels is None:
             raise RatError(f"{self.name} learns from preference labels: give --labels STORE (e.g. a RAT run's "
-                           "labels.sqlite), or --reward oracle for the true target reward")
+                           "labels.sqlite, or the run itself), or --reward oracle for the true target reward")
 
-        def prepare(env):  # r̂ from the label store, before the run directory exists
+        def prepare(env):  # r̂ from the label store or the RAT run, before the run directory exists
             if setup.reward != "labels":
                 return None, {}
             obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+            if setup.labels.is_dir():  # a finished RAT run: the r̂ it ended with
+                return run_reward(setup.labels, obs_dim, act_dim)
             return learn_reward(setup.labels, obs_dim, act_dim, reward_config, setup.seed, cache=True)
 
         def train(run: Run, env: gym.Env, prepared) -> tuple[dict, dict]:

@@ -107,6 +107,9 @@ def ppo_preset(preset: str = "cpu", steps: int | None = None, **overrides) -> PP
     return replace(PPOConfig(total_steps=steps or 50_000, learning_rate=3e-4, batch_size=64), **overrides)
 
 
+BASELINE_REWARDS = ("offline", "rat")  #: where preference-based SA-RL and PA-AD of a grid take r̂ from
+
+
 @dataclass(frozen=True)
 class GridPreset:
     """Budgets of every cell of a grid (recorded in ``grid.json``)."""
@@ -124,6 +127,13 @@ class GridPreset:
     overrides: dict = field(default_factory=dict)  #: other RATConfig fields (small runs)
     pebble_overrides: dict = field(default_factory=dict)  #: other PebbleConfig fields (small runs)
     spend_by: float = 0.9  #: RAT spends its labels by this fraction of the run (cpu and smoke presets)
+    #: the r̂ of preference-based SA-RL and PA-AD: "offline", learnt from the RAT cell's labels; "rat", the one
+    #: the RAT cell ended with (the same labels, nothing learnt again)
+    baseline_reward: str = "offline"
+
+    def __post_init__(self):
+        if self.baseline_reward not in BASELINE_REWARDS:
+            raise RatError(f"baseline reward '{self.baseline_reward}': use one of {', '.join(BASELINE_REWARDS)}")
 
 
     def labels_for(self, cell: "Cell") -> int:

@@ -147,7 +147,8 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
     started = time.perf_counter()
     labels = None
     if method != "rat" and reward == "labels":
-        labels = cell.label_source().directory(Path(out)) / "run" / "labels.sqlite"
+        labels = cell.label_source().directory(Path(out)) / "run"
+        labels = labels if preset.baseline_reward == "rat" else labels / "labels.sqlite"
         if finished(cell.label_source(), Path(out)) is None:
             raise RatError(f"cell {cell.key} needs the labels of {cell.label_source().key}, which has not run")
     setup = attack_setup(f"zoo:{cell.task}", target, ThreatModel(preset.epsilon, preset.norm), cell.seed, reward,

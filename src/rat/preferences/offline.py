@@ -1,14 +1,19 @@
-"""Learning r̂ offline from a label store: what the preference-based baselines learn from.
+"""The r̂ the preference-based baselines attack with: learnt offline from a label store, or a RAT run's own.
 
-SA-RL and PA-AD compared with a RAT run read exactly the labels that run asked (its
-``labels.sqlite``), train one reward ensemble on all of them, and use its mean r̂ as their
-reward. :func:`reward_source` gives either that r̂ or the true target reward (the oracle).
+SA-RL and PA-AD compared with a RAT run read exactly the labels that run asked. Given its
+``labels.sqlite`` they train one reward ensemble on all of them (:func:`learn_reward`); given the
+finished run's directory they take the ensemble the run ended with, trained on the same labels
+(:func:`run_reward`), and learn nothing. Either way the mean r̂ is their reward;
+:func:`reward_source` gives it, or the true target reward (the oracle).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import json
 from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -59,6 +64,35 @@ def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardM
         if cache:
             save_checkpoint(kept, "offline-reward", {"ensemble": ensemble.state_dict()}, {**key, "metrics": metrics})
         return ensemble, {"labels": len(data), "label_ids": key["label_ids"], **metrics}
+
+
+def run_reward(run: str | Path, obs_dim: int, act_dim: int) -> tuple[RewardEnsemble, dict]:
+    """The reward ensemble a finished RAT (or ``rat intention train``) run ended with, and the labels it learnt from.
+
+    Its configuration comes from the run's ``config.json`` and its weights from the run's last checkpoint,
+    written when the run ended; a run that has not finished is refused, so no half-trained r̂ is used unawares.
+    """
+    run = Path(run)
+    if not (run / "report.json").exists() or not (run / "checkpoint.json").exists():
+        raise RatError(f"'{run}' is not a finished RAT run (no report.json or checkpoint); give one that finished, "
+                       "or its labels.sqlite to learn r̂ from")
+    config = json.loads((run / "config.json").read_text())
+    pebble = config.get("rat", config).get("pebble")
+    if pebble is None or pebble.get("oracle"):
+        raise RatError(f"the run in '{run}' learnt no r̂ (it is {'an oracle run' if pebble else 'no RAT run'}); "
+                       "give a RAT run that learnt from labels")
+    known = {f.name for f in dataclasses.fields(RewardModelConfig)}
+    ensemble = RewardEnsemble(obs_dim, act_dim, RewardModelConfig(**{k: v for k, v in pebble["reward"].items() if k in known}))
+    state, meta = load_checkpoint(run / "checkpoint")
+    try:
+        ensemble.load_state_dict(state["learner"]["ensemble"])
+    except (KeyError, RuntimeError) as exc:  # a mismatch of shapes: another task's run
+        raise RatError(f"the r̂ of '{run}' does not fit observations {obs_dim}-d and actions {act_dim}-d "
+                       f"({exc.__class__.__name__}); use a run on this task") from None
+    ensemble.eval()
+    with LabelStore(run / "labels.sqlite", read_only=True) as store:
+        rows = store.read(meta.get("label_source")).rows
+    return ensemble, {"labels": len(rows), "label_ids": [int(r["id"]) for r in rows], "reward_from_run": str(run)}
 
 
 @contextlib.contextmanager
