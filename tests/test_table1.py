@@ -200,6 +200,8 @@ def test_a_finished_rat_run_is_taken_in_as_its_cell_and_keeps_its_numbers(tmp_pa
     assert (cell.directory(grid) / "run" / "metrics.csv").read_text() == trained  # evaluated, not trained again
     with open(grid / "results.csv") as f:
         assert {r["method"]: r["adopted_from"] for r in csv.DictReader(f)} == {"rat": str(alone.resolve()), "sa-rl": ""}
+    again = run_grid([cell, sa_rl], preset, grid, jobs=1, echo=lambda _: None, adopt=[alone])  # the same command
+    assert sorted(again["skipped"]) == sorted([cell.key, sa_rl.key]) and not again["ran"]
     run = cell.directory(grid) / "run"
     assert baseline["method"] == "sa-rl" and baseline["labels"] == report.labels
     assert json.loads((sa_rl.directory(grid) / "result.json").read_text())["labels"] == report.labels

@@ -199,7 +199,7 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
     train with (settings that change nothing computed, such as ``checkpoint_every``, may differ): then it *is*
     that cell's run, and it is copied into the cell's directory, where the grid evaluates it like a resumed cell
     and its labels serve the preference-based baselines. The cell's row names the run (``adopted_from``).
-    Anything else is refused in one line, and nothing is copied.
+    Anything else is refused in one line, and nothing is copied. A run the cell took in before is left as it is.
     """
     import shutil
 
@@ -222,7 +222,11 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
         raise RatError(f"'{run}' ({done.get('method')} against {saved.get('victim')}, target {done.get('target')}, "
                        f"seed {done.get('seed')}) is no RAT cell of this grid; name its task, scenario and seed")
     cell = matches[0]
-    if cell.directory(out).exists():
+    adopted, copy = cell.directory(out) / ADOPTED, cell.directory(out) / "run"
+    again = adopted.exists() and json.loads(adopted.read_text())["run"] == str(run.resolve())
+    if again and copy.exists():
+        return cell  # taken in before: the same command again resumes the grid
+    if cell.directory(out).exists() and not again:
         raise RatError(f"cell {cell.key} already has a run in '{cell.directory(out)}'; adopt into a new --out, "
                        "or remove that cell's directory")
     setup = attack_setup(f"zoo:{cell.task}", scenario_target(cell.scenario), ThreatModel(preset.epsilon, preset.norm),
@@ -233,8 +237,12 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
     if differences:
         raise RatError(f"'{run}' was not trained as cell {cell.key} of this grid would be (differs in: "
                        f"{'; '.join(differences)}); run that cell in the grid instead")
-    shutil.copytree(run, cell.directory(out) / "run", ignore=shutil.ignore_patterns("run.lock", "*.tmp"))
-    (cell.directory(out) / ADOPTED).write_text(json.dumps({"run": str(run.resolve())}, indent=1))
+    cell.directory(out).mkdir(parents=True, exist_ok=True)
+    adopted.write_text(json.dumps({"run": str(run.resolve())}, indent=1))
+    partial = copy.with_name("run.adopting")  # renamed when whole: an interrupted copy is made again
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.copytree(run, partial, ignore=shutil.ignore_patterns("run.lock", "*.tmp"))
+    os.replace(partial, copy)
     return cell
 
 
