@@ -528,6 +528,11 @@ class RATTrainer:
         return self.learner.checkpoint_meta()
 
 
+def as_run(config: RATConfig, env: gym.Env) -> RATConfig:
+    """``config`` as a run in ``env`` records it: the horizon resolved to the env's time limit where unset."""
+    return replace(config, horizon=config.horizon or episode_length(env))
+
+
 def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboard: bool = False) -> AttackReport:
     """Train a RAT adversary against ``setup.victim`` for ``setup.target`` (resumable from ``out``).
 
@@ -536,7 +541,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     cfg, target = config, setup.target
     cfg.pebble.check_budget("RAT")  # here, not in RATConfig: an oracle run's zero budget is fine, and only the setup says oracle
     env = setup.make_env(cfg.seed)  # checked before the run directory exists, so a mistake leaves nothing behind
-    cfg = replace(cfg, horizon=cfg.horizon or episode_length(env))  # recorded as used
+    cfg = as_run(cfg, env)  # recorded as used
     task = setup.describe.get("task")
     check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
     if cfg.refine_steps and is_sequence(setup.victim):

@@ -204,7 +204,7 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
     import shutil
 
     from rat.attacks import ThreatModel
-    from rat.envs.tasks import episode_length
+    from rat.attacks.rat import as_run
     from rat.experiments.runner import attack_setup
     from rat.runs import differences_from_run
 
@@ -231,8 +231,9 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
                        "or remove that cell's directory")
     setup = attack_setup(f"zoo:{cell.task}", scenario_target(cell.scenario), ThreatModel(preset.epsilon, preset.norm),
                          cell.seed, column(cell.method)[1], progress=False)
-    config = cell_config(cell, preset)
-    config = dataclasses.replace(config, horizon=config.horizon or episode_length(setup.make_env(cell.seed)))  # as run
+    env = setup.make_env(cell.seed)
+    config = as_run(cell_config(cell, preset), env)
+    env.close()
     differences = differences_from_run(run, {"rat": config, **setup.describe})
     if differences:
         raise RatError(f"'{run}' was not trained as cell {cell.key} of this grid would be (differs in: "
