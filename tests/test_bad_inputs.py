@@ -115,6 +115,9 @@ CASES = [
      ["cannot write in --out"]),
     ("out is someone else's folder", lambda t, z: (t / "mine").mkdir() or (t / "mine" / "report.json").write_text("{}")
      and ["attack", "train", "--method", "random", "--out", str(t / "mine")], ["is not a rat run", "no config.json"]),
+    ("a report of a grid that would adopt a run", lambda t, z: ["bench", "table1", "--report-only", "--adopt",
+                                                                str(t / "mine"), "--out", str(t / "grid")],
+     ["--report-only runs nothing", "give one or the other"]),
     ("video not writable", lambda t, z: ["victim", "eval", "zoo:drawer-open-v3", "--video", "/proc/rat/v.mp4"],
      ["cannot write in the folder of --video"]),
     ("video is a folder", lambda t, z: ["victim", "eval", "zoo:drawer-open-v3", "--video", str(t)],
@@ -221,6 +224,16 @@ def test_a_run_directory_in_use_by_another_process_is_refused_naming_it(tmp_path
     from rat.runs import claim_run_dir
 
     claim_run_dir(run)  # the holder is gone: its lock went with it
+
+
+def test_a_run_whose_configuration_is_damaged_is_refused_in_one_line_and_kept(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text('{"rat": {"pebb')
+    assert main(["attack", "train", "--method", "random", "--out", str(run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "config.json' is corrupted (JSONDecodeError)" in err, err
+    assert "restore it from a copy" in err and (run / "config.json").read_text() == '{"rat": {"pebb'
 
 
 def test_a_resume_with_other_settings_names_each_one_and_both_values(tmp_path, capsys):

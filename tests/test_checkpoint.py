@@ -64,6 +64,42 @@ def test_damaged_checkpoints_give_one_line_errors(tmp_path, damage, message):
     assert "\n" not in str(info.value)
 
 
+def test_a_part_of_a_checkpoint_reads_only_its_own_tensors(tmp_path, monkeypatch):
+    import safetensors
+
+    state = {"learner": {"ensemble": {"w": torch.arange(3.0), "b": [torch.ones(2)]}, "buffer": torch.zeros(10_000)}}
+    save_checkpoint(tmp_path / "ck", "test", state, {"step": 5})
+    read = []
+    real_open = safetensors.safe_open
+
+    class Recording:
+        def __init__(self, *args, **kwargs):
+            self.handle = real_open(*args, **kwargs)
+
+        def __enter__(self):
+            self.inner = self.handle.__enter__()
+            return self
+
+        def __exit__(self, *exc):
+            return self.handle.__exit__(*exc)
+
+        def keys(self):
+            return self.inner.keys()
+
+        def get_tensor(self, name):
+            read.append(name)
+            return self.inner.get_tensor(name)
+
+    monkeypatch.setattr("rat.checkpoint.safe_open", Recording)
+    part, meta = load_checkpoint(tmp_path / "ck", "test", part=("learner", "ensemble"))
+    assert meta == {"step": 5}
+    torch.testing.assert_close(part["w"], torch.arange(3.0))
+    torch.testing.assert_close(part["b"][0], torch.ones(2))
+    assert sorted(read) == ["state/learner/ensemble/b/0", "state/learner/ensemble/w"]  # not the buffer
+    with pytest.raises(RatError, match="holds no 'learner/reward' \\(no 'reward'\\)"):
+        load_checkpoint(tmp_path / "ck", "test", part=("learner", "reward"))
+
+
 def test_kind_is_checked(tmp_path):
     save_checkpoint(tmp_path / "ck", "victim", {}, {})
     with pytest.raises(RatError, match="'victim' checkpoint, not a 'sac-run' one"):

@@ -228,6 +228,9 @@ def test_a_baseline_given_a_run_that_has_not_finished_or_learnt_no_reward_is_ref
     (tmp_path / "checkpoint.json").write_text("{}")
     with pytest.raises(RatError, match="learnt no r̂ \\(it is an oracle run\\)"):
         run_reward(tmp_path, 39, 4)
+    (tmp_path / "config.json").write_text('{"rat": ')
+    with pytest.raises(RatError, match="config.json' is corrupted \\(JSONDecodeError\\)"):
+        run_reward(tmp_path, 39, 4)
     from dataclasses import replace
 
     with pytest.raises(RatError, match="baseline reward 'mine': use one of offline, rat"):

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 
 from rat.errors import RatError
 
@@ -111,18 +111,42 @@ def read_meta(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     return header
 
 
-def load_checkpoint(path: str | Path, kind: str | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Read a checkpoint written by :func:`save_checkpoint`; returns ``(state, meta)``."""
+def _references(node: Any) -> list[str]:
+    """The names of the tensors a checkpoint's skeleton (or a part of it) refers to."""
+    if isinstance(node, dict):
+        if "__tensor__" in node or "__ndarray__" in node:
+            return [node.get("__tensor__", node.get("__ndarray__"))]
+        children = (node.get("__dict__", {}).values() if "__dict__" in node else
+                    [v for _, v in node["__items__"]] if "__items__" in node else node.get("__list__", []))
+        return [name for child in children for name in _references(child)]
+    return []
+
+
+def load_checkpoint(path: str | Path, kind: str | None = None, part: tuple[str, ...] = ()
+                    ) -> tuple[Any, dict[str, Any]]:
+    """Read a checkpoint written by :func:`save_checkpoint`; returns ``(state, meta)``.
+
+    ``part`` names keys to follow from the top of the state (``("learner", "ensemble")``): then only that
+    part of the state is returned, and only its tensors are read from the file.
+    """
     path = Path(path)
     path = path.with_suffix("") if path.suffix in (".json", ".safetensors") else path
     header = read_meta(path, kind)
+    skeleton = header["state"]
+    for key in part:
+        if not isinstance(skeleton, dict) or key not in skeleton.get("__dict__", {}):
+            raise RatError(f"checkpoint '{path}' holds no '{'/'.join(part)}' (no '{key}'); give a checkpoint that "
+                           "has one")
+        skeleton = skeleton["__dict__"][key]
     try:
-        tensors = load_file(str(path.with_suffix(".safetensors")))
+        with safe_open(str(path.with_suffix(".safetensors")), framework="pt") as handle:
+            stored = set(handle.keys())
+            tensors = {name: handle.get_tensor(name) for name in _references(skeleton) if name in stored}
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise RatError(f"checkpoint tensors '{path}.safetensors' are unreadable or corrupted ({exc}); "
                        "restore the file or make the checkpoint again") from exc
     try:
-        state = _unflatten(header["state"], tensors)
+        state = _unflatten(skeleton, tensors)
     except KeyError as exc:
         raise RatError(f"checkpoint '{path}' is corrupted: tensor {exc} is missing from its .safetensors file") from exc
     return state, header["meta"]

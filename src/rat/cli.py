@@ -664,6 +664,9 @@ def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ra
     from rat.experiments.presets import GRID_PRESETS
     from rat.experiments.table1 import grid_cells, grid_reports, read_grid, run_grid
 
+    if report_only and adopt:
+        raise RatError("--report-only runs nothing, so it cannot take in --adopt runs (their cells are evaluated); "
+                       "give one or the other")
     if report_only:
         rows = grid_reports(out)
         total = len(read_grid(out)["cells"])

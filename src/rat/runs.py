@@ -144,11 +144,27 @@ def config_differences(saved: dict[str, Any], now: dict[str, Any], defaults: dic
     return differences
 
 
+def read_run_config(directory: str | Path) -> dict[str, Any]:
+    """The configuration a run directory was started with (its ``config.json``); a missing or damaged one is
+    refused in one line."""
+    path = Path(directory) / "config.json"
+    try:
+        saved = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RatError(f"'{directory}' is not a run directory (no config.json); give the --out of a rat run") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RatError(f"run configuration '{path}' is corrupted ({exc.__class__.__name__}); restore it from a copy, "
+                       "or start the run again in a new --out") from None
+    if not isinstance(saved, dict):
+        raise RatError(f"run configuration '{path}' is not a JSON object; restore it from a copy, or start the run "
+                       "again in a new --out")
+    return saved
+
+
 def differences_from_run(directory: str | Path, config: Any) -> list[str]:
     """:func:`config_differences` between the configuration a run directory was started with and ``config``
     (a dataclass, or a dict holding some), settings added since the run counting only away from their defaults."""
-    saved = json.loads((Path(directory) / "config.json").read_text())
-    return config_differences(saved, to_jsonable(config), _defaults(config))
+    return config_differences(read_run_config(directory), to_jsonable(config), _defaults(config))
 
 
 def _defaults(config: Any) -> Any:

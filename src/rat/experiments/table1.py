@@ -206,21 +206,20 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
     from rat.attacks import ThreatModel
     from rat.attacks.rat import as_run
     from rat.experiments.runner import attack_setup
-    from rat.runs import differences_from_run
+    from rat.reports import AttackReport
+    from rat.runs import differences_from_run, read_run_config
 
     run, out = Path(run), Path(out)
-    saved_config, report = run / "config.json", run / "report.json"
-    if not saved_config.exists():
-        raise RatError(f"'{run}' is not a run directory (no config.json); give the --out of `rat attack train`")
-    if not report.exists():
+    saved = read_run_config(run)
+    if not (run / "report.json").exists():
         raise RatError(f"the run in '{run}' has not finished (no report.json); resume it with its own command first")
-    saved, done = json.loads(saved_config.read_text()), json.loads(report.read_text())
+    done = AttackReport.read(run)
     matches = [c for c in cells if column(c.method)[0] == "rat" and f"zoo:{c.task}" == saved.get("victim")
-               and scenario_target(c.scenario) == done.get("target") and c.seed == done.get("seed")
-               and column(c.method)[1] == done.get("reward")]
+               and scenario_target(c.scenario) == done.target and c.seed == done.seed
+               and column(c.method)[1] == done.reward]
     if "rat" not in saved or not matches:
-        raise RatError(f"'{run}' ({done.get('method')} against {saved.get('victim')}, target {done.get('target')}, "
-                       f"seed {done.get('seed')}) is no RAT cell of this grid; name its task, scenario and seed")
+        raise RatError(f"'{run}' ({done.method} against {saved.get('victim')}, target {done.target}, "
+                       f"seed {done.seed}) is no RAT cell of this grid; name its task, scenario and seed")
     cell = matches[0]
     adopted, copy = cell.directory(out) / ADOPTED, cell.directory(out) / "run"
     again = adopted.exists() and json.loads(adopted.read_text())["run"] == str(run.resolve())

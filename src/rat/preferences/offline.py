@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from rat.envs.targets import RewardFn, TargetBehaviour
 from rat.errors import RatError
 from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig
 from rat.preferences.store import LabelStore
-from rat.runs import to_jsonable
+from rat.runs import read_run_config, to_jsonable
 
 def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardModelConfig = RewardModelConfig(),
                  seed: int = 0, source: str | None = None, cache: bool = False) -> tuple[RewardEnsemble, dict]:
@@ -76,16 +75,16 @@ def run_reward(run: str | Path, obs_dim: int, act_dim: int) -> tuple[RewardEnsem
     if not (run / "report.json").exists() or not (run / "checkpoint.json").exists():
         raise RatError(f"'{run}' is not a finished RAT run (no report.json or checkpoint); give one that finished, "
                        "or its labels.sqlite to learn r̂ from")
-    config = json.loads((run / "config.json").read_text())
+    config = read_run_config(run)
     pebble = config.get("rat", config).get("pebble")
     if pebble is None or pebble.get("oracle"):
         raise RatError(f"the run in '{run}' learnt no r̂ (it is {'an oracle run' if pebble else 'no RAT run'}); "
                        "give a RAT run that learnt from labels")
     known = {f.name for f in dataclasses.fields(RewardModelConfig)}
     ensemble = RewardEnsemble(obs_dim, act_dim, RewardModelConfig(**{k: v for k, v in pebble["reward"].items() if k in known}))
-    state, meta = load_checkpoint(run / "checkpoint")
+    state, meta = load_checkpoint(run / "checkpoint", part=("learner", "ensemble"))  # r̂ alone: not the run's buffers
     try:
-        ensemble.load_state_dict(state["learner"]["ensemble"])
+        ensemble.load_state_dict(state)
     except (KeyError, RuntimeError) as exc:  # a mismatch of shapes: another task's run
         raise RatError(f"the r̂ of '{run}' does not fit observations {obs_dim}-d and actions {act_dim}-d "
                        f"({exc.__class__.__name__}); use a run on this task") from None
