@@ -113,13 +113,17 @@ def read_meta(path: str | Path, kind: str | None = None) -> dict[str, Any]:
 
 def _references(node: Any) -> list[str]:
     """The names of the tensors a checkpoint's skeleton (or a part of it) refers to."""
-    if isinstance(node, dict):
-        if "__tensor__" in node or "__ndarray__" in node:
-            return [node.get("__tensor__", node.get("__ndarray__"))]
-        children = (node.get("__dict__", {}).values() if "__dict__" in node else
-                    [v for _, v in node["__items__"]] if "__items__" in node else node.get("__list__", []))
-        return [name for child in children for name in _references(child)]
-    return []
+    if not isinstance(node, dict):
+        return []
+    if "__tensor__" in node or "__ndarray__" in node:
+        return [node.get("__tensor__") or node["__ndarray__"]]
+    if "__dict__" in node:
+        children = list(node["__dict__"].values())
+    elif "__items__" in node:
+        children = [v for _, v in node["__items__"]]
+    else:
+        children = node.get("__list__", [])
+    return [name for child in children for name in _references(child)]
 
 
 def load_checkpoint(path: str | Path, kind: str | None = None, part: tuple[str, ...] = ()

@@ -23,6 +23,7 @@ from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig
 from rat.preferences.store import LabelStore
 from rat.runs import read_run_config, to_jsonable
 
+
 def learn_reward(labels: str | Path, obs_dim: int, act_dim: int, config: RewardModelConfig = RewardModelConfig(),
                  seed: int = 0, source: str | None = None, cache: bool = False) -> tuple[RewardEnsemble, dict]:
     """A reward ensemble trained on every label of a store (or of one ``source``), once, offline.
