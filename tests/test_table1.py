@@ -66,6 +66,8 @@ def test_a_running_cell_reports_the_step_its_run_has_logged(tmp_path):
     (run / "config.json").write_text(json.dumps({"rat": {"total_steps": 50000}}))
     (run / "metrics.csv").write_text("step,behaviour_success\n500,0.0\n12000,1.0\n")
     assert cell_progress(cell, tmp_path, within=60) == "drawer-open-v3/opposite/rat/seed0 step 12000/50000"
+    (run / "config.json").write_text('{"rat": {"tot')  # damaged: the cell's own run refuses it; the line goes on
+    assert cell_progress(cell, tmp_path, within=60) == "drawer-open-v3/opposite/rat/seed0 step 12000/?"
     old = time.time() - 120
     os.utime(run / "metrics.csv", (old, old))
     assert cell_progress(cell, tmp_path, within=60) is None  # not logged lately: waiting or stopped

@@ -36,7 +36,7 @@ import numpy as np
 from rat.errors import RatError, require
 from rat.experiments.paper import PAPER_TABLE1
 from rat.experiments.presets import GridPreset
-from rat.runs import config_differences
+from rat.runs import config_differences, read_run_config
 
 METHODS = ("pa-ad-oracle", "pa-ad", "sa-rl-oracle", "sa-rl", "random", "rat")  # the paper's column order
 METHOD_NAMES = {"pa-ad-oracle": "PA-AD (oracle)", "pa-ad": "PA-AD", "sa-rl-oracle": "SA-RL (oracle)",
@@ -207,7 +207,7 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
     from rat.attacks.rat import as_run
     from rat.experiments.runner import attack_setup
     from rat.reports import AttackReport
-    from rat.runs import differences_from_run, read_run_config
+    from rat.runs import differences_from_run
 
     run, out = Path(run), Path(out)
     saved = read_run_config(run)
@@ -346,12 +346,15 @@ def grid_reports(out: str | Path) -> list[dict]:
 def cell_progress(cell: Cell, out: Path, within: float) -> str | None:
     """``<cell>: step n/total`` for a cell whose run has logged in the last ``within`` seconds, else None."""
     run = cell.directory(out) / "run"
-    metrics, config = run / "metrics.csv", run / "config.json"
+    metrics = run / "metrics.csv"
     if finished(cell, out) is not None or not metrics.exists() or time.time() - metrics.stat().st_mtime > within:
         return None
     lines = metrics.read_text().splitlines()
     step = lines[-1].split(",", 1)[0] if len(lines) > 1 else "0"
-    settings = json.loads(config.read_text()) if config.exists() else {}
+    try:
+        settings = read_run_config(run)
+    except RatError:  # not written yet, or damaged: the cell's own run says so; a progress line should not stop a grid
+        settings = {}
     total = settings.get("rat", settings.get("ppo", {})).get("total_steps", "?")
     return f"{cell.key} step {step}/{total}"
 
