@@ -4,7 +4,7 @@
 
 Each component is timed as the RAT loop runs it (median of repeats after a warm-up), then scaled
 to its frequency per 1,000 steps: 1,000 environment steps with the victim's or intention
-policy's action, 1,000 intention-SAC updates, the adversary and weighting updates the preset schedules
+policy's action, the intention policy's SAC updates (1,000 at one a step), the adversary and weighting updates the preset schedules
 (for `reach`: 100 and one), and one reward round (training plus relabelling) every 5,000. A sequence
 victim (a Decision Transformer) is timed with full-length contexts: the stored ones are a fresh
 episode's, all padding, which costs the model the same as a full history.
@@ -76,9 +76,10 @@ def main() -> None:
 
     adversary = 1000 / cfg.adversary_every * cfg.adversary_updates  # per 1,000 steps, as the run schedules them
     weighting = 1000 / cfg.weighting_every
+    sac = 1000 * cfg.pebble.updates_per_step
     rows = {
         "environment (1,000 steps, acting included)": timed(env_steps, 3, 1),
-        "intention SAC (1,000 updates, batch 256)": 1000 * timed(lambda: learner.update(), 50, 5),
+        f"intention SAC ({sac:,g} updates, batch {cfg.pebble.sac.batch_size})": sac * timed(lambda: learner.update(), 50, 5),
         f"adversary ({adversary:g} updates, batch {cfg.adversary_batch})": adversary * timed(rat.adversary_step, 30),
         f"weighting network ({weighting:g} hypergradient update{'s' if weighting != 1 else ''}, batch {cfg.adversary_batch})":
             weighting * timed(rat.weighting_step, 10),

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rat.agents.sac import SACConfig
-from rat.preferences.pebble import PebbleConfig, PebbleLearner
+from rat.preferences.pebble import PebbleConfig, PebbleLearner, updates_due
 from rat.preferences.reward_model import RewardModelConfig
 from rat.preferences.store import LabelStore
 
@@ -96,6 +96,15 @@ def test_pretraining_updates_use_the_intrinsic_reward(tmp_path):
     learner, env = make(tmp_path, tiny_config())
     drive(learner, env, 100)
     assert learner.agent.updates == 100 - 60 + 1 and learner.entropy_stats.count > 1  # updates ran, on r_int
+
+
+def test_fewer_sac_updates_than_steps_come_evenly_and_add_up(tmp_path):
+    for per_step in (0.25, 1 / 3, 0.5, 1.0, 2.0):
+        due = [updates_due(k, per_step) for k in range(300)]
+        assert sum(due[:120]) == int(per_step * 120) and max(due) - min(due) <= 1
+    learner, env = make(tmp_path, tiny_config(updates_per_step=0.5))
+    drive(learner, env, 100)
+    assert learner.agent.updates == (100 - 60 + 1) // 2  # every other step from the seed steps' end
 
 
 @pytest.mark.slow

@@ -19,6 +19,7 @@ Every label goes to a :class:`~rat.preferences.store.LabelStore` as it arrives.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -61,7 +62,7 @@ class PebbleConfig:
     teacher: TeacherConfig = field(default_factory=TeacherConfig)  #: scripted teacher's noise
     entropy_k: int = 5  #: k of the k-NN state entropy
     reset_updates: int = 100  #: SAC updates right after the critic reset
-    updates_per_step: int = 1  #: SAC updates per environment step
+    updates_per_step: float = 1.0  #: SAC updates per environment step (0.5: one every other step; 2: two a step)
     buffer_capacity: int = 1_000_000  #: replay buffer size
     oracle: bool = False  #: learn from the true target reward instead of labels (an upper bound; no queries)
     normalize_reward: bool = False  #: standardise r̂ over the replay buffer at every round (mean 0, std 1)
@@ -103,6 +104,13 @@ class PebbleConfig:
         """Query rounds: the first right after pre-training, then every ``feedback_every`` steps."""
         return FeedbackSchedule(self.budget, self.seed_steps + self.unsupervised_steps, self.feedback_every,
                                 self.per_round)
+
+
+def updates_due(k: int, per_step: float) -> int:
+    """SAC updates at the ``k``-th step that learns (k = 0, 1, ...): ``floor(per_step · (k + 1)) − floor(per_step · k)``,
+    so any ``k`` steps make ``per_step · k`` updates, rounded down, with no state to save: a resumed run goes on
+    exactly where it stopped."""
+    return math.floor(per_step * (k + 1)) - math.floor(per_step * k)
 
 
 class PebbleLearner:
@@ -180,7 +188,7 @@ class PebbleLearner:
         elif self.config.oracle and self.step == self.schedule.first_step:
             self.reset_critic()  # pre-training is over: forget the intrinsic reward's values, as a labelled run does
         if self.step >= self.config.seed_steps:
-            for _ in range(self.config.updates_per_step):
+            for _ in range(updates_due(self.step - self.config.seed_steps, self.config.updates_per_step)):
                 metrics.update(self.update())
         return metrics
 
