@@ -166,7 +166,8 @@ def run_cell(cell: Cell, preset: GridPreset, out: str | Path, plugins: tuple[str
            "refined_gap": report.details.get("refined_gap"),  # what refinement left of ‖μ_ν(s̃) − π_θ(s)‖
            "clean_success_rate": report.clean_success_rate}
     if (directory / ADOPTED).exists():  # trained outside the grid, by `rat attack train` (see adopt_run)
-        row["adopted_from"] = json.loads((directory / ADOPTED).read_text())["run"]
+        adopted = json.loads((directory / ADOPTED).read_text())
+        row["adopted_from"] = adopted.get("named", adopted["run"])  # as the command named it, not this machine's path
     tmp = directory / "result.json.tmp"
     tmp.write_text(json.dumps(row, indent=1))
     os.replace(tmp, directory / "result.json")  # written last: the cell is finished
@@ -238,7 +239,7 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
         raise RatError(f"'{run}' was not trained as cell {cell.key} of this grid would be (differs in: "
                        f"{'; '.join(differences)}); run that cell in the grid instead")
     cell.directory(out).mkdir(parents=True, exist_ok=True)
-    adopted.write_text(json.dumps({"run": str(run.resolve())}, indent=1))
+    adopted.write_text(json.dumps({"run": str(run.resolve()), "named": str(run)}, indent=1))  # named: for the table
     partial = copy.with_name("run.adopting")  # renamed when whole: an interrupted copy is made again
     shutil.rmtree(partial, ignore_errors=True)
     shutil.copytree(run, partial, ignore=shutil.ignore_patterns("run.lock", "*.tmp"))
