@@ -240,6 +240,17 @@ def test_refinement_narrows_each_states_imitation_gap_inside_the_ball_and_never_
     assert not changed(before[0], victim) and all(p.grad is None for p in victim.parameters())
 
 
+def test_refinement_refines_where_the_caller_turned_gradients_off():
+    victim, intention, adversary, _, _, _ = isolation_setup()
+    obs, threat = np.random.default_rng(2).normal(size=4), ThreatModel(1.0)
+    free = refined_function(adversary, intention.actor, victim, threat, 10)(obs)
+    with torch.no_grad():  # as r̂ scores an attack's episodes (policy_learned_return)
+        inside = refined_function(adversary, intention.actor, victim, threat, 10)(obs)
+        network = refined_function(adversary, intention.actor, victim, threat, 0)(obs)
+    np.testing.assert_allclose(inside, free, atol=1e-6)
+    assert np.abs(inside - network).max() > 1e-3  # it moved from the network's Δ
+
+
 def test_refinement_starts_from_the_previous_observations_delta_when_that_fits_better():
     victim, intention, adversary, _, _, _ = isolation_setup()
     obs, gaps = np.random.default_rng(1).normal(size=4), []

@@ -221,6 +221,7 @@ class RefinedAttack:
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         return self.batch(np.asarray(obs)[None], [0])[0]
 
+    @torch.enable_grad()  # its steps follow gradients, even where the caller plays episodes under no_grad
     def batch(self, obs: np.ndarray, slots: Sequence[int]) -> np.ndarray:
         """Δ for each row of ``obs [B, d]``; row i continues the episode in ``slots[i]``."""
         s = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
