@@ -16,22 +16,24 @@ from pathlib import Path
 
 import numpy as np
 
+from rat.errors import RatError
 from rat.preferences.store import LabelStore
 
 
 def round_summaries(store: LabelStore, high: float) -> list[dict]:
-    """One row per query round of the store's labels (every source together), with the round's step."""
+    """One row per query round of each source of the store's labels (a run's own, or imported), with its step."""
     labels = store.read()
-    at = {r["round"]: r["step"] for source, _ in store.sources() for r in store.rounds(source)}
-    rounds = np.asarray([row["round"] if row["round"] is not None else -1 for row in labels.rows])
-    steps = np.concatenate([labels.pairs.reward0, labels.pairs.reward1])  # [2n, L]
-    rounds = np.concatenate([rounds, rounds])
+    at = {(source, r["round"]): r["step"] for source, _ in store.sources() for r in store.rounds(source)}
+    keys = [(row["source"], -1 if row["round"] is None else row["round"]) for row in labels.rows]
+    steps = np.concatenate([labels.pairs.reward0, labels.pairs.reward1])  # [2n, L]: both segments of every pair
     out = []
-    for r in sorted(set(rounds.tolist())):
-        x = steps[rounds == r]
+    for source, r in sorted(set(keys)):
+        pair = np.asarray([key == (source, r) for key in keys])
+        x = steps[np.concatenate([pair, pair])]
         returns = x.sum(1)
         p50, p90 = np.percentile(returns, [50, 90])
-        out.append({"round": r, "step": at.get(r), "pairs": len(x) // 2, "max_step": float(x.max()),
+        out.append({"source": source, "round": r, "step": at.get((source, r)), "pairs": len(x) // 2,
+                    "max_step": float(x.max()),
                     "share_high": float((x.max(1) >= high).mean()), "return_p50": float(p50),
                     "return_p90": float(p90), "return_max": float(returns.max())})
     return out
@@ -42,12 +44,17 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="a run directory with a labels.sqlite")
     parser.add_argument("--high", type=float, default=9.0, help="a step reward that marks the behaviour")
     args = parser.parse_args()
-    with LabelStore(args.run / "labels.sqlite", read_only=True) as store:
-        rows = round_summaries(store, args.high)
-    print(f"| round | step | pairs | largest step reward | segments with a step ≥ {args.high:g} | return p50 | p90 | max |")
+    try:
+        with LabelStore(args.run / "labels.sqlite", read_only=True) as store:
+            rows = round_summaries(store, args.high)
+    except RatError as exc:
+        parser.error(str(exc))
+    several = len({row["source"] for row in rows}) > 1
+    print(f"| {'source / ' if several else ''}round | step | pairs | largest step reward | segments with a step ≥ {args.high:g} | return p50 | p90 | max |")
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for row in rows:
-        print(f"| {row['round']} | {row['step'] or '?'} | {row['pairs']} | {row['max_step']:.2f} | {row['share_high']:.2f} | "
+        name = f"{row['source']} / {row['round']}" if several else row["round"]
+        print(f"| {name} | {row['step'] or '?'} | {row['pairs']} | {row['max_step']:.2f} | {row['share_high']:.2f} | "
               f"{row['return_p50']:.0f} | {row['return_p90']:.0f} | {row['return_max']:.0f} |")
 
 

@@ -20,6 +20,7 @@ from rat import seeds
 from rat.attacks import ThreatModel
 from rat.attacks.rat import load_rat_attack, policy_learned_return
 from rat.attacks.threat import AttackedObservation
+from rat.errors import RatError
 from rat.experiments.runner import attack_setup
 from rat.preferences.offline import run_reward
 from rat.reports import AttackReport
@@ -30,8 +31,9 @@ from rat.victims.base import VictimPolicy
 def learned_returns(run: Path, episodes: int) -> dict:
     """r̂'s mean return for the network's Δ and for the refined attack, with the report's success of each."""
     config, report = read_run_config(run), AttackReport.read(run)
-    if not config["rat"].get("refine_steps"):
-        raise SystemExit(f"'{run}' does not refine Δ (refine_steps 0), so its report has no refined success to compare")
+    if "rat" not in config or not config["rat"].get("refine_steps"):
+        raise RatError(f"'{run}' is no RAT run that refines Δ (refine_steps > 0), so its report has no refined "
+                       "success to compare; give one that does")
     threat = ThreatModel(report.epsilon, report.norm)
     setup = attack_setup(config["victim"], report.target, threat, report.seed, progress=False)
     env = setup.make_env(report.seed + seeds.SELECTION_ENV)
@@ -54,7 +56,10 @@ def main() -> None:
     print("| run | r̂ return: network's Δ | refined | r̂ prefers | success (30 ep.): network's Δ | refined |")
     print("| --- | ---: | ---: | --- | ---: | ---: |")
     for run in args.runs:
-        row = learned_returns(run, args.episodes)
+        try:
+            row = learned_returns(run, args.episodes)
+        except RatError as exc:
+            parser.error(str(exc))
         prefers = "refined" if row["r_hat_refined"] >= row["r_hat_network"] else "network"
         print(f"| {row['run']} | {row['r_hat_network']:.1f} | {row['r_hat_refined']:.1f} | {prefers} | "
               f"{row['success_network']:.1%} | {row['success_refined']:.1%} |", flush=True)

@@ -105,20 +105,18 @@ def test_reading_a_store_read_only_never_writes_to_it(tmp_path, rng):
 
 
 def test_the_label_returns_script_summarises_what_each_round_showed_the_teacher(tmp_path, rng):
-    import importlib.util
-    from pathlib import Path
+    from benchmark_scripts import load
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "label_returns.py"
-    spec = importlib.util.spec_from_file_location("label_returns", script)
-    label_returns = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(label_returns)
+    label_returns = load("label_returns")
     early, late = random_pairs(2, rng), random_pairs(1, rng)
     early.reward0[:], early.reward1[:], late.reward0[:], late.reward1[:] = 1.0, 2.0, 3.0, 1.0
     late.reward1[0, 2] = 10.0  # one step of one segment inside the success region
     with LabelStore(tmp_path / "l.sqlite") as store:
         store.add(early, np.array([1.0, 1.0]), {"type": "scripted"}, "run", round=0, step=100, asked=2)
         store.add(late, np.array([1.0]), {"type": "scripted"}, "run", round=1, step=200, asked=1)
-        first, second = label_returns.round_summaries(store, high=9.0)
+        store.add(late, np.array([0.0]), {"type": "scripted"}, "imported", round=0, step=50, asked=1)
+        other, first, second = label_returns.round_summaries(store, high=9.0)
+    assert (other["source"], other["round"], other["step"], other["pairs"]) == ("imported", 0, 50, 1)  # kept apart
     assert (first["step"], first["pairs"], first["max_step"], first["share_high"]) == (100, 2, 2.0, 0.0)
     assert first["return_max"] == 10.0 and first["return_p50"] == 7.5  # segments of 5 steps: returns 5, 5, 10, 10
     assert (second["step"], second["pairs"], second["max_step"], second["share_high"]) == (200, 1, 10.0, 0.5)

@@ -362,15 +362,9 @@ def test_the_page_in_chromium_plays_both_videos_and_takes_keyboard_mouse_and_und
 
 @pytest.mark.slow
 def test_concurrent_answers_are_stored_exactly_once_and_a_killed_server_loses_none_acknowledged(tmp_path):
-    import importlib.util
-    import sys
+    from benchmark_scripts import load as load_script
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "labelling_load.py"
-    spec = importlib.util.spec_from_file_location("labelling_load", script)
-    load = importlib.util.module_from_spec(spec)
-    sys.modules["labelling_load"] = load
-    spec.loader.exec_module(load)
-
+    load = load_script("labelling_load")
     r = load.run(clients=8, answers=40, kill_at=100, folder=tmp_path)
     assert r["error_count"] == 0, r["errors"]
     assert 100 <= r["acknowledged_before_kill"] < 320  # killed mid-round, then restarted

@@ -1,20 +1,13 @@
 """The steerability benchmark's greedy white-box attacker, on the point environment of the tests."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
+from benchmark_scripts import load
 from point_env import OFFSET, PointGoal, point_victim
 from scipy import stats
 
 from rat.attacks import ThreatModel
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "steerability.py"
-spec = importlib.util.spec_from_file_location("steerability", SCRIPT)
-steerability = importlib.util.module_from_spec(spec)
-sys.modules["steerability"] = steerability  # dataclasses look their module up while the class is made
-spec.loader.exec_module(steerability)
+steerability = load("steerability")
 
 
 def beside() -> "steerability.Steering":

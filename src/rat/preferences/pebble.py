@@ -69,8 +69,8 @@ class PebbleConfig:
 
     def __post_init__(self):
         for name in ("seed_steps", "unsupervised_steps", "reset_updates", "updates_per_step"):
-            if getattr(self, name) < 0:
-                raise RatError(f"{name.replace('_', '-')} must not be negative, got {getattr(self, name)}")
+            if not getattr(self, name) >= 0 or math.isinf(getattr(self, name)):  # NaN fails the first test
+                raise RatError(f"{name.replace('_', '-')} must be a finite number >= 0, got {getattr(self, name)}")
         for name in ("segment_length", "candidates_factor", "max_episodes", "buffer_capacity"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
