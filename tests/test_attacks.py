@@ -316,6 +316,27 @@ def test_combined_policy_switches_at_the_drawn_episode_step():
     assert len(counts) == 10 and stats.chisquare(counts).pvalue > 0.001  # h ~ U{0..H-1}
 
 
+def test_from_reset_starts_that_share_of_episodes_with_the_intention_policy():
+    rng = np.random.default_rng(1)
+    policy = CombinedBehaviourPolicy(horizon=50, from_reset=0.3)
+    switches = []
+    for _ in range(4000):
+        policy.start_episode(rng)
+        switches.append(policy.switch)
+        assert policy.victim_acts(0) == (policy.switch > 0)
+    switches = np.array(switches)
+    # h = 0 with probability p + (1 − p)/H; the rest uniform over 1..H−1
+    expected = 0.3 + 0.7 / 50
+    assert stats.binomtest(int((switches == 0).sum()), len(switches), expected).pvalue > 0.001
+    assert stats.chisquare(np.bincount(switches[switches > 0], minlength=50)[1:]).pvalue > 0.001
+    plain, seeded = CombinedBehaviourPolicy(horizon=50), np.random.default_rng(1)
+    paper = []  # p = 0 draws exactly the paper's stream
+    for _ in range(20):
+        plain.start_episode(seeded)
+        paper.append(plain.switch)
+    assert paper == list(np.random.default_rng(1).integers(0, 50, size=20))
+
+
 def test_ablation_modes_fix_the_switch():
     rng = np.random.default_rng(0)
     victim_only, intention_only = CombinedBehaviourPolicy(8, "victim"), CombinedBehaviourPolicy(8, "intention")
@@ -327,6 +348,11 @@ def test_ablation_modes_fix_the_switch():
 def test_bad_attack_settings():
     with pytest.raises(RatError, match="epsilon must be"):
         RATConfig(epsilon=-1)
+    for share in (-0.1, 1.5, float("nan")):
+        with pytest.raises(RatError, match="from-reset is a share of episodes"):
+            RATConfig(from_reset=share)
+    with pytest.raises(RatError, match="no-combined ablation replaces"):
+        RATConfig(from_reset=0.2, ablation="no-combined")
     with pytest.raises(RatError, match="unknown ablation"):
         RATConfig(ablation="no-everything")
     with pytest.raises(RatError, match="refine-steps must be"):

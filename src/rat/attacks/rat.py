@@ -86,6 +86,7 @@ class RATConfig:
     weighting_norm: str = "none"  #: "none": mean_s h(s)·KL_s (the paper's); "batch": Σ h·KL / Σ h, only ratios count
     ablation: str = "none"  #: none, no-weighting, no-combined, no-intention
     horizon: int | None = None  #: episode length H of the combined behaviour policy's switch (None: the env's time limit)
+    from_reset: float = 0.0  #: share of episodes in which π_θ acts from the first step (h = 0), beside h ~ U{0..H−1}
     eval_every: int = 10_000  #: steps between attack evaluations
     eval_episodes: int = 10  #: episodes per evaluation during training
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
@@ -122,6 +123,11 @@ class RATConfig:
         check_refine_loss(self.refine_loss)
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
+        if not 0 <= self.from_reset <= 1:
+            raise RatError(f"from-reset is a share of episodes, between 0 and 1; got {self.from_reset}")
+        if self.from_reset and self.ablation in ("no-combined", "no-intention"):
+            raise RatError(f"from-reset shapes the combined behaviour policy, which the {self.ablation} ablation "
+                           "replaces; drop one of the two")
         if self.intention_anchor < 0:
             raise RatError(f"intention-anchor must be ≥ 0, got {self.intention_anchor}")
         if self.anchor_to not in ANCHORS:
@@ -149,15 +155,20 @@ class CombinedBehaviourPolicy:
     """Who acts at each episode step: the perturbed victim before a switch step h, π_θ from h on.
 
     h ~ U{0, …, H−1} is drawn at every episode start (``"combined"``); ``"intention"`` and
-    ``"victim"`` fix h = 0 and h = H.
+    ``"victim"`` fix h = 0 and h = H. With ``from_reset`` p > 0 (a departure, ``docs/design.md`` §6),
+    a combined episode starts with π_θ (h = 0) with probability p, so that π_θ also learns the
+    behaviour from the states a victim starts in — those an attack must steer from.
     """
 
-    def __init__(self, horizon: int, mode: str = "combined"):
-        self.horizon, self.mode, self.switch = horizon, mode, 0
+    def __init__(self, horizon: int, mode: str = "combined", from_reset: float = 0.0):
+        self.horizon, self.mode, self.from_reset, self.switch = horizon, mode, from_reset, 0
 
     def start_episode(self, rng: np.random.Generator) -> None:
-        self.switch = {"combined": lambda: int(rng.integers(0, self.horizon)), "intention": lambda: 0,
-                       "victim": lambda: self.horizon}[self.mode]()
+        if self.mode == "combined":
+            # p = 0 draws nothing extra, so a run without the option keeps the paper's random stream
+            self.switch = 0 if self.from_reset and rng.random() < self.from_reset else int(rng.integers(0, self.horizon))
+        else:
+            self.switch = {"intention": 0, "victim": self.horizon}[self.mode]
 
     def victim_acts(self, episode_step: int) -> bool:
         return episode_step < self.switch
@@ -331,7 +342,7 @@ class RATTrainer:
         self.adversary_opt = torch.optim.Adam(self.adversary.parameters(), lr=cfg.adversary_lr)
         self.weighting_opt = torch.optim.Adam(self.weighting.parameters(), lr=cfg.weighting_lr)
         mode = {"no-combined": "intention", "no-intention": "victim"}.get(cfg.ablation, "combined")
-        self.behaviour = CombinedBehaviourPolicy(cfg.horizon or episode_length(env), mode)
+        self.behaviour = CombinedBehaviourPolicy(cfg.horizon or episode_length(env), mode, cfg.from_reset)
         self.use_weighting = cfg.ablation not in ("no-weighting", "no-intention")  # no-combined keeps h_ω
         self.counters = {"adversary_updates": 0, "weighting_updates": 0}
         self.best: dict | None = None  # imitate="best": frozen copies of π_θ's actor and critic, its temperature
