@@ -440,3 +440,18 @@ def test_a_refined_attack_evaluated_in_lockstep_gives_each_episode_its_own_numbe
     np.testing.assert_allclose([r[2] for r in together.records], [r[2] for r in alone.records], atol=1e-6)
     np.testing.assert_allclose(sorted(gaps_together), sorted(gaps_alone), atol=1e-4)
     assert together.within_budget
+
+
+def test_the_refine_choice_script_records_an_attacked_episode_as_the_teacher_sees_it():
+    from benchmark_scripts import load
+    from point_env import BESIDE, point_victim
+
+    true_episode = load("refine_choice").true_episode
+    still = AttackedObservation(PointGoal(), lambda obs: np.zeros(4), ThreatModel(0.1))
+    # the goal seen to the right, the point to the left: the victim overshoots the goal, through the target beside it
+    rightward = AttackedObservation(PointGoal(), lambda obs: np.array([-1.0, 0.0, 1.0, 0.0]), ThreatModel(0.1))
+    (o0, a0, r0, ok0), (o1, a1, r1, ok1) = (true_episode(point_victim(), env, BESIDE, 5) for env in (still, rightward))
+    assert o0.shape == (HORIZON, 4) and a1.shape == (HORIZON, 2) and r0.shape == ok0.shape == (HORIZON,)
+    np.testing.assert_array_equal(o0[0], o1[0])  # the same start, the true observation
+    assert not ok0.any() and ok1.any() and r1.sum() > r0.sum()
+    np.testing.assert_allclose(o1[1, :2], o1[0, :2] + 0.05 * np.clip(a1[0], -1, 1))  # the true state moved by the action
