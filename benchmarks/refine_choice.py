@@ -24,8 +24,8 @@ import torch
 from rat import seeds
 from rat.attacks import ThreatModel
 from rat.attacks.rat import load_rat_attack, policy_learned_return
-from rat.envs.targets import TargetBehaviour
 from rat.attacks.threat import AttackedObservation
+from rat.envs.targets import TargetBehaviour
 from rat.errors import RatError
 from rat.experiments.runner import attack_setup
 from rat.preferences.offline import run_reward

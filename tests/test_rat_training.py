@@ -213,6 +213,21 @@ def test_each_ablation_removes_its_own_component_only(tmp_path, ablation, victim
     assert report.details["adversary_updates"] > 0 and (report.details["weighting_updates"] > 0) == weighted
 
 
+def test_a_run_starts_the_share_of_episodes_from_reset_asks_with_the_intention_policy(tmp_path):
+    from rat.attacks.rat import RATTrainer
+    from rat.preferences.store import LabelStore
+
+    def switches(share):
+        cfg, s = small_config(600, from_reset=share), setup()
+        trainer = RATTrainer(cfg, s, s.make_env(0), LabelStore(tmp_path / f"labels-{share}.sqlite"), "run",
+                             tmp_path / "snapshots")
+        ends = [trainer.advance() for _ in range(6 * HORIZON)]  # six episodes, before any SAC update
+        return [end["switch_step"] for end in ends if end is not None]
+
+    assert switches(1.0) == [0] * 6
+    assert any(h > 0 for h in switches(0.0))
+
+
 def test_the_intention_anchor_pulls_pi_thetas_reward_towards_the_clean_victims_action_and_only_that(tmp_path):
 
     from rat.attacks.rat import RATTrainer
