@@ -18,3 +18,23 @@ def test_a_report_written_before_clean_success_was_recorded_still_reads(tmp_path
     (tmp_path / "report.json").write_text(__import__("json").dumps(BASE))
     report = AttackReport.read(tmp_path)
     assert report.clean_success_rate is None and "clean victim" not in report.summary()
+
+
+def test_the_training_plot_marks_the_deployed_attack_where_evaluations_measured_something_else(tmp_path):
+    """A RAT run that refines Δ is evaluated during training on the network's Δ alone (0% on a manipulation row
+    whose refined attack makes 93%); the plot must show the deployed result, not only the 0% line."""
+    import matplotlib.image
+
+    from rat.plots import plot_training
+
+    metrics = tmp_path / "metrics.csv"
+    metrics.write_text("step,eval_success_rate\n100,\n1000,0.0\n2000,0.0\n")
+
+    def red_pixels(path):
+        rgb = matplotlib.image.imread(path)[..., :3]
+        return int(((rgb[..., 0] > 0.75) & (rgb[..., 1] < 0.3) & (rgb[..., 2] < 0.3)).sum())
+
+    assert red_pixels(plot_training(metrics, tmp_path / "plain.png", "t")) == 0
+    marked = plot_training(metrics, tmp_path / "marked.png", "t", curve="the network's Δ alone",
+                           final=(2000, 0.933, "the attack, Δ refined"))
+    assert red_pixels(marked) > 50

@@ -37,8 +37,13 @@ def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path:
     return path
 
 
-def plot_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
-    """Evaluation success over environment steps, from a run's metrics.csv."""
+def plot_training(metrics_csv: Path, path: Path, title: str, curve: str = "evaluations during training",
+                  final: tuple[float, float, str] | None = None) -> Path | None:
+    """Evaluation success over environment steps, from a run's metrics.csv.
+
+    ``final`` = (step, success rate, label) marks the result as deployed at the end of a run, where that is not
+    what the evaluations during training measured (a RAT attack refines Δ at every observation; they do not).
+    """
     if not Path(metrics_csv).exists():  # nothing was logged
         return None
     with open(metrics_csv, newline="") as f:
@@ -47,7 +52,12 @@ def plot_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
         return None
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.2))
-    ax.plot([float(r["step"]) for r in rows], [100 * float(r["eval_success_rate"]) for r in rows], marker="o")
+    ax.plot([float(r["step"]) for r in rows], [100 * float(r["eval_success_rate"]) for r in rows], marker="o",
+            label=curve)
+    if final is not None:
+        step, rate, label = final
+        ax.plot([step], [100 * rate], marker="*", markersize=14, linestyle="none", color="tab:red", label=label)
+        ax.legend(loc="best", fontsize=8)
     ax.set_xlabel("environment steps")
     ax.set_ylabel("target success (%)")
     ax.set_ylim(-3, 103)

@@ -601,7 +601,13 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(),
                                                           "intention": pi_theta.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
-    plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
+    if cfg.refine_steps:  # the evaluations during training measure the network's Δ; the attack refines it
+        plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success",
+                      curve="the network's Δ alone, during training",
+                      final=(trainer.step, final.result.success_rate,
+                             f"the attack, Δ refined ({cfg.final_eval_episodes} episodes)"))
+    else:
+        plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
     report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
                           labels=store.count(trainer.learner.source), minutes=train_seconds / 60,
                           train_minutes=loop.total_seconds / 60, details=details,
