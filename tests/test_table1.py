@@ -239,3 +239,27 @@ def test_a_baseline_given_a_run_that_has_not_finished_or_learnt_no_reward_is_ref
 
     with pytest.raises(RatError, match="baseline reward 'mine': use one of offline, rat"):
         replace(SMOKE, baseline_reward="mine")
+
+
+def test_the_curves_mark_each_methods_deployed_attack_beside_its_training_evaluations(tmp_path, monkeypatch):
+    """A refined RAT cell's evaluations during training (the network's Δ) can read 0% where the table says 90%."""
+    import rat.plots
+    from rat.experiments.table1 import plot_curves
+
+    real = rat.plots.pyplot()
+    figures = []
+    monkeypatch.setattr(real, "close", figures.append)  # keep the figure to read its lines
+    monkeypatch.setattr(rat.plots, "pyplot", lambda: real)
+    rows = []
+    for seed, final in ((0, 0.8), (1, 1.0)):
+        run = Cell("drawer-open-v3", "manipulation", "rat", seed).directory(tmp_path) / "run"
+        run.mkdir(parents=True)
+        (run / "metrics.csv").write_text("step,eval_success_rate\n10,\n1000,0.0\n2000,0.0\n")
+        rows.append({"task": "drawer-open-v3", "scenario": "manipulation", "method": "rat", "seed": seed,
+                     "attack_success_rate": final})
+    plot_curves(tmp_path, "drawer-open-v3", rows)
+    lines = figures[0].axes[0].get_lines()
+    curve = [line for line in lines if line.get_marker() == "o"]
+    stars = [line for line in lines if line.get_marker() == "*" and len(line.get_xdata())]
+    assert list(curve[0].get_ydata()) == [0.0, 0.0]
+    assert [(list(s.get_xdata()), list(s.get_ydata())) for s in stars] == [([2000], [90.0])]

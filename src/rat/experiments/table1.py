@@ -456,7 +456,9 @@ def markdown_table(rows: list[dict], preset: GridPreset) -> str:
 
 
 def plot_curves(out: Path, task: str, rows: list[dict]) -> Path | None:
-    """Attack success during training (``eval_success_rate``), mean over seeds, per method and scenario."""
+    """Attack success during training (``eval_success_rate``), mean over seeds, per method and scenario, and a star
+    at the end for the attack as deployed (the table's figure): where Δ is refined at attack time the evaluations
+    during training measure the network's Δ alone, and the two can differ by 90 points."""
     from rat.plots import pyplot
 
     plt = pyplot()
@@ -466,7 +468,7 @@ def plot_curves(out: Path, task: str, rows: list[dict]) -> Path | None:
     fig, axes = plt.subplots(1, len(scenarios), figsize=(6 * len(scenarios), 4), squeeze=False)
     for ax, scenario in zip(axes[0], scenarios):
         for method in methods:
-            curves = []
+            curves, finals = [], []
             for r in rows:
                 if (r["scenario"], r["method"]) != (scenario, method):
                     continue
@@ -478,14 +480,18 @@ def plot_curves(out: Path, task: str, rows: list[dict]) -> Path | None:
                               if x.get("eval_success_rate")]
                 if points:
                     curves.append(dict(points))
+                    finals.append(float(r["attack_success_rate"]))
             if curves:
                 steps = sorted(set().union(*curves))
                 mean = [100 * np.mean([c[s] for c in curves if s in c]) for s in steps]
                 ax.plot(steps, mean, marker="o", color=colour[method],  # one colour per method in every panel
                         label=f"{METHOD_NAMES.get(method, method)} (n={len(curves)})")
+                ax.plot([steps[-1]], [100 * np.mean(finals)], marker="*", markersize=13, linestyle="none",
+                        color=colour[method])
         ax.set(title=f"{task}: {scenario}", xlabel="environment steps", ylabel="attack success (%)", ylim=(-5, 105))
         ax.grid(alpha=0.3)
         if ax.get_lines():
+            ax.plot([], [], marker="*", markersize=10, linestyle="none", color="0.4", label="as deployed (the table)")
             ax.legend(fontsize=8)
     fig.tight_layout()
     path = out / f"curves-{task.replace('/', '-')}.png"
