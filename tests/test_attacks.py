@@ -442,6 +442,55 @@ def test_a_refined_attack_evaluated_in_lockstep_gives_each_episode_its_own_numbe
     assert together.within_budget
 
 
+def test_a_refined_attack_on_a_sequence_victim_follows_each_episodes_context_alone_and_in_lockstep(tmp_path):
+    """Refinement runs the victim on its context: the attack keeps each episode's as the victim's keeper does."""
+    transformers = pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
+    from rat.attacks.evaluation import evaluate_attack
+    from rat.envs.targets import TargetBehaviour
+    from rat.victims.base import VictimPolicy
+    from rat.victims.sequence import load_decision_transformer, save_decision_transformer
+
+    torch.manual_seed(0)
+    config = transformers.DecisionTransformerConfig(state_dim=4, act_dim=2, hidden_size=16, max_ep_len=64, n_layer=1,
+                                                    n_head=1, n_positions=64, action_tanh=True)
+    save_decision_transformer(tmp_path / "dt", transformers.DecisionTransformerModel(config), np.zeros(4), np.ones(4),
+                              target_return=-2.0, return_scale=10.0, context_length=4)
+    victim = load_decision_transformer(tmp_path / "dt")
+    _, intention, adversary, _, _, _ = isolation_setup()
+    threat = ThreatModel(0.1)
+    near = TargetBehaviour("near", "within 10 cm of the goal", lambda *a: 0.0,
+                           lambda info: float(np.linalg.norm(info["point"] - info["goal"])) < 0.1)
+
+    # one episode by hand: what the attack keeps is what the victim's keeper keeps
+    attack = refined_function(adversary, intention.actor, victim, threat, 5)
+    env, policy = AttackedObservation(EndsEarly(PointGoal()), attack, threat), VictimPolicy(victim)
+    obs, _ = env.reset(seed=3)
+    policy.reset()
+    done = False
+    while not done:
+        obs, reward, terminated, truncated, _ = env.step(policy(obs))
+        policy.observe(reward)
+        done = terminated or truncated
+    assert policy.context.length == 3 and int(policy.context.timesteps[0, -1]) == 28
+    torch.testing.assert_close(victim.pack_context(attack.contexts[0]), victim.pack_context(policy.context))
+    with_history = attack.batch(obs[None], [0])
+    attack.reset(0)
+    assert not np.allclose(attack.batch(obs[None], [0]), with_history)  # the context reaches the refinement
+
+    runs = {}
+    for mode, width in (("alone", 1), ("lockstep", 3)):
+        gaps: list[float] = []
+        attack = refined_function(adversary, intention.actor, victim, threat, 5, gaps=gaps)
+        runs[mode] = evaluate_attack(victim, attack, EndsEarly(PointGoal()), near, threat, 6, 500,
+                                     make_env=lambda: EndsEarly(PointGoal()), lockstep=width), gaps
+    (alone, gaps_alone), (together, gaps_together) = runs["alone"], runs["lockstep"]
+    assert together.result.successes == alone.result.successes
+    np.testing.assert_allclose(together.result.mean_return, alone.result.mean_return, rtol=1e-5)
+    assert [r[:2] for r in together.records] == [r[:2] for r in alone.records]
+    np.testing.assert_allclose(sorted(gaps_together), sorted(gaps_alone), atol=1e-4)
+    assert together.within_budget
+
+
 def test_the_refine_choice_script_records_an_attacked_episode_as_the_teacher_sees_it():
     from benchmark_scripts import load
     from point_env import BESIDE, point_victim

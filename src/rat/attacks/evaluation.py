@@ -16,7 +16,7 @@ from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.envs.targets import TargetBehaviour
 from rat.eval import EvalResult, evaluate
 from rat.reports import AttackReport
-from rat.victims.base import Victim, numpy_policy, victim_device
+from rat.victims.base import Victim, is_sequence, numpy_policy, victim_device
 
 
 @dataclass
@@ -78,12 +78,11 @@ def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, ta
 
     Episode ``i`` is reset with ``seed + i`` (see :mod:`rat.seeds`). Given ``make_env`` (more environments
     like ``env``), a perturbation that computes many observations' Δ at once (``batch``: a refined RAT
-    attack) and a memoryless victim, up to ``lockstep`` episodes run side by side and each step's Δ and
-    actions are computed for all of them together: the same episodes and numbers but for floating-point
-    rounding, in a fraction of the time (a video is always made one episode at a time).
+    attack), up to ``lockstep`` episodes run side by side and each step's Δ and actions are computed for
+    all of them together: the same episodes and numbers but for floating-point rounding, in a fraction of
+    the time (a video is always made one episode at a time). A sequence victim keeps each episode's context.
     """
-    if (make_env is not None and video is None and hasattr(perturbation, "batch") and lockstep > 1
-            and victim.initial_context(1) is None):
+    if make_env is not None and video is None and hasattr(perturbation, "batch") and lockstep > 1:
         return _evaluate_in_lockstep(victim, perturbation, env, make_env, target, threat, episodes, seed,
                                      lockstep, progress, desc)
     attacked = AttackedObservation(env, perturbation, threat)
@@ -99,10 +98,13 @@ def _evaluate_in_lockstep(victim: Victim, perturbation, env: gym.Env, make_env: 
     """:func:`evaluate_attack` with ``width`` episodes at a time, Δ and actions computed for them together.
 
     Each episode sees exactly what it would alone: reset with ``seed + i``, every observation perturbed
-    once (the one after the last step too, as :class:`AttackedObservation` does), its success test its own.
+    once (the one after the last step too, as :class:`AttackedObservation` does), its success test its own,
+    a sequence victim's context its own (stacked into one batch for each step's actions), and a perturbation
+    with ``observe`` told each of its steps as :class:`AttackedObservation` tells it (with the episode's slot).
     """
     envs = [env] + [make_env() for _ in range(min(width, episodes) - 1)]
     device = victim_device(victim)
+    contexts = {} if is_sequence(victim) else None  # per slot, as VictimPolicy keeps one
     returns, first, last = [0.0] * episodes, [-1] * episodes, [False] * episodes
     records: list[tuple[int, int, float]] = []
     with tqdm(total=episodes, desc=desc, disable=not progress, leave=False) as bar:
@@ -114,6 +116,8 @@ def _evaluate_in_lockstep(victim: Victim, perturbation, env: gym.Env, make_env: 
                     perturbation.reset(k)
                 obs[k] = envs[k].reset(seed=seed + episode)[0]
                 tests[k], steps[k] = target.episode_success(), 0
+                if contexts is not None:
+                    contexts[k] = victim.initial_context(1)
             while obs:
                 slots = sorted(obs)
                 true = np.stack([obs[k] for k in slots])
@@ -121,16 +125,26 @@ def _evaluate_in_lockstep(victim: Victim, perturbation, env: gym.Env, make_env: 
                 attacked = threat.perturb(torch.as_tensor(true, dtype=torch.float64), delta).numpy()
                 norms = threat.size(attacked - true)
                 records.extend((wave[k], steps[k], float(n)) for k, n in zip(slots, norms))
-                acting = [i for i, k in enumerate(slots) if k not in ended]
-                with torch.no_grad():
-                    seen = torch.as_tensor(attacked[acting].astype(true.dtype), dtype=torch.float32, device=device)
-                    actions = victim.act(seen).cpu().numpy()
                 for k in [k for k in slots if k in ended]:  # its last observation is perturbed, not acted on
                     del obs[k]
                     bar.update(1)
-                for i, action in zip(acting, actions):
+                acting = [i for i, k in enumerate(slots) if k not in ended]
+                if not acting:
+                    continue
+                with torch.no_grad():
+                    seen = torch.as_tensor(attacked[acting].astype(true.dtype), dtype=torch.float32, device=device)
+                    context = None if contexts is None else victim.unpack_context(
+                        torch.cat([victim.pack_context(contexts[slots[i]]) for i in acting]))
+                    taken = victim.act(seen, context)
+                    actions = taken.cpu().numpy()
+                for row, (i, action) in enumerate(zip(acting, actions)):
                     k = slots[i]
                     obs[k], reward, terminated, truncated, info = envs[k].step(action)
+                    if contexts is not None:
+                        contexts[k] = victim.update_context(contexts[k], seen[row:row + 1], taken[row:row + 1],
+                                                            torch.tensor([float(reward)]))
+                    if hasattr(perturbation, "observe"):
+                        perturbation.observe(attacked[i].astype(true.dtype), action, reward, slot=k)
                     episode = wave[k]
                     returns[episode] += reward
                     last[episode] = tests[k](info)

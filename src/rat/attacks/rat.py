@@ -197,7 +197,10 @@ class RefinedAttack:
     from the network's Δ or from the Δ chosen at the episode's previous observation, whichever leaves the
     smaller loss here (consecutive states are close). It needs what training already does — the victim's
     gradient and π_θ — and costs ``steps`` forward and backward passes of the victim per observation.
-    Memoryless victims only (a sequence victim's context is not passed). ``gaps``, if given, receives the
+    A sequence victim acts on its context too: the attack keeps each episode's own, from what it is told of
+    every step (:meth:`observe`: the observation as the victim saw it, the action, the reward), exactly as
+    the victim's keeper does, and refines Δ for the current observation with the context fixed — the past
+    perturbed states stay as they were seen (``docs/design.md`` §9, §10). ``gaps``, if given, receives the
     gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ left at each observation (whichever loss chose Δ).
 
     Called with one observation it is a :data:`~rat.attacks.threat.Perturbation`; :meth:`batch` refines the
@@ -215,19 +218,34 @@ class RefinedAttack:
         self.victim_std, self.kl_form = victim_std, kl_form
         self.device = next(adversary.parameters()).device
         self.previous: dict[int, torch.Tensor] = {}  # per episode slot: the last Δ chosen there, before tanh
+        self.contexts: dict[int, object] | None = {} if is_sequence(victim) else None  # per slot: the victim's
 
     def reset(self, slot: int = 0) -> None:
         """A new episode in ``slot``: its first observation starts from the network's Δ alone."""
         self.previous.pop(slot, None)
+        if self.contexts is not None:
+            self.contexts[slot] = self.victim.initial_context(1)
 
-    def _action(self, s: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
-        return self.victim.act(self.threat.perturb(s, torch.tanh(raw)))
+    def observe(self, seen: np.ndarray, action: np.ndarray, reward: float, slot: int = 0) -> None:
+        """The step just taken in ``slot``'s episode, for a sequence victim's context (nothing for a memoryless one)."""
+        if self.contexts is None:
+            return
+        row = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32, device=self.device).reshape(1, -1)  # noqa: E731
+        self.contexts[slot] = self.victim.update_context(self._context(slot), row(seen), row(action),
+                                                         torch.tensor([float(reward)]))
 
-    def _losses(self, s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-        """Each row's loss (one per observation)."""
+    def _context(self, slot: int):
+        return self.contexts.setdefault(slot, self.victim.initial_context(1))
+
+    def _action(self, s: torch.Tensor, raw: torch.Tensor, context) -> torch.Tensor:
+        return self.victim.act(self.threat.perturb(s, torch.tanh(raw)), context)
+
+    def _losses(self, s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor,
+                context=None) -> torch.Tensor:
+        """Each row's loss (one per observation; ``context``: a sequence victim's, one row each)."""
         if self.loss == "kl":
-            return gaussian_kl(self._action(s, raw), self.victim_std, mean, log_std, self.kl_form)
-        return (self._action(s, raw) - mean).pow(2).sum(-1)
+            return gaussian_kl(self._action(s, raw, context), self.victim_std, mean, log_std, self.kl_form)
+        return (self._action(s, raw, context) - mean).pow(2).sum(-1)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         return self.batch(np.asarray(obs)[None], [0])[0]
@@ -237,19 +255,26 @@ class RefinedAttack:
         """Δ for each row of ``obs [B, d]``; row i continues the episode in ``slots[i]``."""
         s = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         mean, log_std = intention_gaussian(self.intention, s)
+        packed = None if self.contexts is None else torch.cat(
+            [self.victim.pack_context(self._context(slot)) for slot in slots])
+
+        def context(rows=slice(None)):  # a sequence victim's contexts of these rows (None for a memoryless one)
+            return None if packed is None else self.victim.unpack_context(packed[rows])
+
         with torch.no_grad():
             raw = torch.atanh(self.adversary(s).clamp(-0.999, 0.999))
             known = [i for i, slot in enumerate(slots) if slot in self.previous]
             if known:  # the previous Δ where it fits this state better (a tie keeps the network's)
                 before = torch.cat([self.previous[slots[i]] for i in known])
-                better = self._losses(s[known], before, mean[known], log_std[known]) < \
-                    self._losses(s[known], raw[known], mean[known], log_std[known])
+                better = self._losses(s[known], before, mean[known], log_std[known], context(known)) < \
+                    self._losses(s[known], raw[known], mean[known], log_std[known], context(known))
                 raw[known] = torch.where(better[:, None], before, raw[known])
         raw.requires_grad_(True)
         optimizer = torch.optim.Adam([raw], lr=self.lr)
         best, best_loss = raw.detach().clone(), torch.full((len(s),), float("inf"), device=self.device)
+        everyone = context()
         for step in range(self.steps + 1):  # the last pass only scores the last step
-            losses = self._losses(s, raw, mean, log_std)
+            losses = self._losses(s, raw, mean, log_std, everyone)
             with torch.no_grad():
                 improved = losses < best_loss
                 best = torch.where(improved[:, None], raw, best)
@@ -260,7 +285,7 @@ class RefinedAttack:
                 optimizer.step()
         if self.gaps is not None:
             with torch.no_grad():
-                self.gaps.extend((self._action(s, best) - mean).norm(dim=-1).tolist())
+                self.gaps.extend((self._action(s, best, everyone) - mean).norm(dim=-1).tolist())
         for i, slot in enumerate(slots):
             self.previous[slot] = best[i:i + 1]
         return torch.tanh(best).double().cpu().numpy()
@@ -556,9 +581,6 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     cfg = as_run(cfg, env)  # recorded as used
     task = setup.describe.get("task")
     check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
-    if cfg.refine_steps and is_sequence(setup.victim):
-        raise RatError("refine-steps works on memoryless victims only (it does not pass a sequence victim's context); "
-                       "leave refine_steps at 0 for this victim")
     if cfg.intention_anchor and is_sequence(setup.victim):
         raise RatError("intention-anchor needs the victim's clean action at every stored state, which a sequence "
                        "victim gives only in its context; leave intention_anchor at 0 for this victim")
@@ -713,8 +735,6 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if intention is None:
         raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
                        "run its `rat attack train` command again to rewrite it, or evaluate without refinement")
-    if is_sequence(victim):
-        raise RatError("refine-steps works on memoryless victims only; evaluate this attack without refinement")
     return refined_function(adversary, intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
                             cfg.get("refine_lr", RATConfig.refine_lr), gaps,
                             loss=refine_loss or cfg.get("refine_loss", RATConfig.refine_loss),

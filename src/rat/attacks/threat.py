@@ -129,7 +129,10 @@ class AttackedObservation(gym.ObservationWrapper):
     Args:
         env: any gymnasium environment with a ``Box`` observation space.
         perturbation: maps a true observation to Δ (numpy); projected here. If it has ``reset()``
-            (state kept within an episode), that is called at every reset.
+            (state kept within an episode), that is called at every reset; if it has ``observe(seen,
+            action, reward)`` (one that follows a sequence victim's history), it is told each step
+            taken — the observation as the agent saw it, the action, the reward — before it perturbs
+            the next observation.
         threat: the budget.
     """
 
@@ -140,6 +143,7 @@ class AttackedObservation(gym.ObservationWrapper):
         self.records: list[tuple[int, int, float]] = []
         self._episode, self._t = -1, 0
         self._last_true: np.ndarray | None = None
+        self._last_seen: np.ndarray | None = None
 
     def observation(self, obs: np.ndarray) -> np.ndarray:
         self._last_true = np.asarray(obs)
@@ -147,7 +151,8 @@ class AttackedObservation(gym.ObservationWrapper):
         attacked = self.threat.perturb(torch.as_tensor(obs, dtype=torch.float64), delta).numpy()
         self.norms.append(float(self.threat.size(attacked - obs)))
         self.records.append((self._episode, self._t, self.norms[-1]))
-        return attacked.astype(np.asarray(obs).dtype)
+        self._last_seen = attacked.astype(np.asarray(obs).dtype)
+        return self._last_seen
 
     def reset(self, **kwargs):
         self._episode, self._t = self._episode + 1, 0
@@ -159,6 +164,9 @@ class AttackedObservation(gym.ObservationWrapper):
 
     def step(self, action):
         self._t += 1
-        obs, reward, terminated, truncated, info = super().step(action)
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if hasattr(self.perturbation, "observe"):  # the step just taken, before the next observation's Δ
+            self.perturbation.observe(self._last_seen, action, reward)
+        obs = self.observation(obs)
         info = dict(info, true_obs=self._last_true, perturbation_norm=self.norms[-1])
         return obs, reward, terminated, truncated, info
