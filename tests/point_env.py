@@ -67,3 +67,18 @@ class GoTo(nn.Module):
 def point_victim() -> ModuleVictim:
     env = PointGoal()
     return ModuleVictim(GoTo(), env.observation_space, env.action_space, name="go-to-goal")
+
+
+def point_dt_victim(directory):
+    """A tiny Decision Transformer for the point task (4 observations, 2 actions, context 4), saved in the hub's
+    layout under ``directory`` and loaded from there; the caller skips without ``transformers``."""
+    import transformers
+
+    from rat.victims.sequence import load_decision_transformer, save_decision_transformer
+
+    torch.manual_seed(0)
+    config = transformers.DecisionTransformerConfig(state_dim=4, act_dim=2, hidden_size=16, max_ep_len=64, n_layer=1,
+                                                    n_head=1, n_positions=64, action_tanh=True)
+    save_decision_transformer(directory, transformers.DecisionTransformerModel(config), np.zeros(4), np.ones(4),
+                              target_return=-2.0, return_scale=10.0, context_length=4)
+    return load_decision_transformer(directory)

@@ -444,18 +444,13 @@ def test_a_refined_attack_evaluated_in_lockstep_gives_each_episode_its_own_numbe
 
 def test_a_refined_attack_on_a_sequence_victim_follows_each_episodes_context_alone_and_in_lockstep(tmp_path):
     """Refinement runs the victim on its context: the attack keeps each episode's as the victim's keeper does."""
-    transformers = pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
+    pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
+    from point_env import point_dt_victim
     from rat.attacks.evaluation import evaluate_attack
     from rat.envs.targets import TargetBehaviour
     from rat.victims.base import VictimPolicy
-    from rat.victims.sequence import load_decision_transformer, save_decision_transformer
 
-    torch.manual_seed(0)
-    config = transformers.DecisionTransformerConfig(state_dim=4, act_dim=2, hidden_size=16, max_ep_len=64, n_layer=1,
-                                                    n_head=1, n_positions=64, action_tanh=True)
-    save_decision_transformer(tmp_path / "dt", transformers.DecisionTransformerModel(config), np.zeros(4), np.ones(4),
-                              target_return=-2.0, return_scale=10.0, context_length=4)
-    victim = load_decision_transformer(tmp_path / "dt")
+    victim = point_dt_victim(tmp_path / "dt")
     _, intention, adversary, _, _, _ = isolation_setup()
     threat = ThreatModel(0.1)
     near = TargetBehaviour("near", "within 10 cm of the goal", lambda *a: 0.0,

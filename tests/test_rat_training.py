@@ -288,15 +288,10 @@ def test_rat_against_a_sequence_victim_trains_on_each_state_in_the_context_the_v
 
     import rat.attacks.rat as rat_module
 
-    transformers = pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
-    from rat.victims.sequence import load_decision_transformer, save_decision_transformer
+    pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
+    from point_env import point_dt_victim
 
-    torch.manual_seed(0)
-    config = transformers.DecisionTransformerConfig(state_dim=4, act_dim=2, hidden_size=16, max_ep_len=64, n_layer=1,
-                                                    n_head=1, n_positions=64, action_tanh=True)
-    save_decision_transformer(tmp_path / "dt", transformers.DecisionTransformerModel(config), np.zeros(4), np.ones(4),
-                              target_return=-2.0, return_scale=10.0, context_length=4)
-    victim = load_decision_transformer(tmp_path / "dt")
+    victim = point_dt_victim(tmp_path / "dt")
     before = {k: v.clone() for k, v in victim.state_dict().items()}
     cfg = replace(small_config(700), weighting_every=100, horizon=None,  # H: the environment's time limit
                   weighting_norm="batch")  # normalised weights, through the victim's context too
