@@ -415,22 +415,31 @@ class EndsEarly(gym.Wrapper):
         return obs, reward, terminated or self.t >= self.length, truncated, info
 
 
-def test_a_refined_attack_evaluated_in_lockstep_gives_each_episode_its_own_numbers():
-    """Ten episodes three at a time, Δ refined for all the running ones at once, against one at a time."""
-    from point_env import point_victim
+def alone_and_in_lockstep(victim, threat: ThreatModel, steps: int, radius: float, episodes: int):
+    """A refined attack's evaluation one episode at a time and three at a time (each with the gaps it left), on the
+    point task with episodes of their own lengths; success is coming within ``radius`` of the goal."""
     from rat.attacks.evaluation import evaluate_attack
     from rat.envs.targets import TargetBehaviour
 
-    victim, (_, intention, adversary, _, _, _) = point_victim(), isolation_setup()
-    reached = TargetBehaviour("near", "within 6 cm of the goal", lambda *a: 0.0,
-                              lambda info: float(np.linalg.norm(info["point"] - info["goal"])) < 0.06)
-    threat, runs = ThreatModel(0.025), {}  # a budget that keeps 3 of these 10 episodes near the goal
-    for mode, width in (("alone", 1), ("lockstep", 3)):
+    _, intention, adversary, _, _, _ = isolation_setup()
+    near = TargetBehaviour("near", f"within {radius} of the goal", lambda *a: 0.0,
+                           lambda info: float(np.linalg.norm(info["point"] - info["goal"])) < radius)
+    runs = []
+    for width in (1, 3):
         gaps: list[float] = []
-        attack = refined_function(adversary, intention.actor, victim, threat, 10, gaps=gaps)
-        runs[mode] = evaluate_attack(victim, attack, EndsEarly(PointGoal()), reached, threat, 10, 500,
-                                     make_env=lambda: EndsEarly(PointGoal()), lockstep=width), gaps
-    (alone, gaps_alone), (together, gaps_together) = runs["alone"], runs["lockstep"]
+        attack = refined_function(adversary, intention.actor, victim, threat, steps, gaps=gaps)
+        runs.append((evaluate_attack(victim, attack, EndsEarly(PointGoal()), near, threat, episodes, 500,
+                                     make_env=lambda: EndsEarly(PointGoal()), lockstep=width), gaps))
+    return runs
+
+
+def test_a_refined_attack_evaluated_in_lockstep_gives_each_episode_its_own_numbers():
+    """Ten episodes three at a time, Δ refined for all the running ones at once, against one at a time."""
+    from point_env import point_victim
+
+    # a budget that keeps 3 of these 10 episodes near the goal
+    (alone, gaps_alone), (together, gaps_together) = alone_and_in_lockstep(point_victim(), ThreatModel(0.025), 10,
+                                                                           0.06, 10)
     assert 0 < sum(alone.result.successes) < 10  # the attack decides some episodes and not others
     assert together.result.successes == alone.result.successes
     assert together.result.first_success_step == alone.result.first_success_step
@@ -446,15 +455,11 @@ def test_a_refined_attack_on_a_sequence_victim_follows_each_episodes_context_alo
     """Refinement runs the victim on its context: the attack keeps each episode's as the victim's keeper does."""
     pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
     from point_env import point_dt_victim
-    from rat.attacks.evaluation import evaluate_attack
-    from rat.envs.targets import TargetBehaviour
     from rat.victims.base import VictimPolicy
 
     victim = point_dt_victim(tmp_path / "dt")
     _, intention, adversary, _, _, _ = isolation_setup()
     threat = ThreatModel(0.1)
-    near = TargetBehaviour("near", "within 10 cm of the goal", lambda *a: 0.0,
-                           lambda info: float(np.linalg.norm(info["point"] - info["goal"])) < 0.1)
 
     # one episode by hand: what the attack keeps is what the victim's keeper keeps
     attack = refined_function(adversary, intention.actor, victim, threat, 5)
@@ -472,13 +477,7 @@ def test_a_refined_attack_on_a_sequence_victim_follows_each_episodes_context_alo
     attack.reset(0)
     assert not np.allclose(attack.batch(obs[None], [0]), with_history)  # the context reaches the refinement
 
-    runs = {}
-    for mode, width in (("alone", 1), ("lockstep", 3)):
-        gaps: list[float] = []
-        attack = refined_function(adversary, intention.actor, victim, threat, 5, gaps=gaps)
-        runs[mode] = evaluate_attack(victim, attack, EndsEarly(PointGoal()), near, threat, 6, 500,
-                                     make_env=lambda: EndsEarly(PointGoal()), lockstep=width), gaps
-    (alone, gaps_alone), (together, gaps_together) = runs["alone"], runs["lockstep"]
+    (alone, gaps_alone), (together, gaps_together) = alone_and_in_lockstep(victim, threat, 5, 0.1, 6)
     assert together.result.successes == alone.result.successes
     np.testing.assert_allclose(together.result.mean_return, alone.result.mean_return, rtol=1e-5)
     assert [r[:2] for r in together.records] == [r[:2] for r in alone.records]

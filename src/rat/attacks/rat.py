@@ -235,7 +235,9 @@ class RefinedAttack:
                                                          torch.tensor([float(reward)]))
 
     def _context(self, slot: int):
-        return self.contexts.setdefault(slot, self.victim.initial_context(1))
+        if slot not in self.contexts:  # an episode begun without reset()
+            self.contexts[slot] = self.victim.initial_context(1)
+        return self.contexts[slot]
 
     def _action(self, s: torch.Tensor, raw: torch.Tensor, context) -> torch.Tensor:
         return self.victim.act(self.threat.perturb(s, torch.tanh(raw)), context)
@@ -265,9 +267,9 @@ class RefinedAttack:
             raw = torch.atanh(self.adversary(s).clamp(-0.999, 0.999))
             known = [i for i, slot in enumerate(slots) if slot in self.previous]
             if known:  # the previous Δ where it fits this state better (a tie keeps the network's)
-                before = torch.cat([self.previous[slots[i]] for i in known])
-                better = self._losses(s[known], before, mean[known], log_std[known], context(known)) < \
-                    self._losses(s[known], raw[known], mean[known], log_std[known], context(known))
+                before, theirs = torch.cat([self.previous[slots[i]] for i in known]), context(known)
+                better = self._losses(s[known], before, mean[known], log_std[known], theirs) < \
+                    self._losses(s[known], raw[known], mean[known], log_std[known], theirs)
                 raw[known] = torch.where(better[:, None], before, raw[known])
         raw.requires_grad_(True)
         optimizer = torch.optim.Adam([raw], lr=self.lr)
