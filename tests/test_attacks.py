@@ -476,6 +476,11 @@ def test_a_refined_attack_on_a_sequence_victim_follows_each_episodes_context_alo
     with_history = attack.batch(obs[None], [0])
     attack.reset(0)
     assert not np.allclose(attack.batch(obs[None], [0]), with_history)  # the context reaches the refinement
+    passes = []
+    victim._past = lambda *inputs, past=victim._past: passes.append(1) or past(*inputs)
+    attack.batch(obs[None], [0])
+    assert len(passes) == 2  # the past ran once for the warm start's comparison and once for the five steps
+    del victim._past
 
     (alone, gaps_alone), (together, gaps_together) = alone_and_in_lockstep(victim, threat, 5, 0.1, 6)
     assert together.result.successes == alone.result.successes

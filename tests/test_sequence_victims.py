@@ -185,6 +185,36 @@ def test_the_split_forward_gives_the_models_actions_and_gradients_and_a_model_it
         assert not torch.allclose(misread._split_action(*inputs), misread._model_action(*inputs), atol=1e-4)
 
 
+def test_a_prepared_context_acts_as_the_context_and_a_model_the_split_cannot_match_keeps_it_whole(saved):
+    """An attacker refining Δ acts many times in one context; prepared, its past runs once, with the same actions."""
+    from rat.victims.sequence import PreparedContext
+
+    _, directory = saved
+    victim = load_decision_transformer(directory)
+    rng = np.random.default_rng(5)
+    for steps in (0, 2, 7):  # a fresh episode, a young one, one past K
+        context = victim.initial_context(2)
+        for _ in range(steps):
+            obs = torch.as_tensor(rng.normal(size=(2, OBS)), dtype=torch.float32)
+            context = victim.update_context(context, obs, victim.act(obs, context).detach(), torch.ones(2))
+        prepared = victim.prepare(context)
+        assert isinstance(prepared, PreparedContext)
+        obs = torch.tensor(rng.normal(size=(2, OBS)), dtype=torch.float32, requires_grad=True)
+        for each in (context, prepared):
+            action = victim.act(obs, each)
+            (grad,) = torch.autograd.grad(action.pow(2).sum(), obs)
+            if each is context:
+                expected = action, grad
+        torch.testing.assert_close((action, grad), expected, atol=1e-5, rtol=1e-4)
+        assert grad.abs().sum() > 0
+        first = victim.unpack_context(victim.pack_context(context)[:1])  # one episode's, for several observations
+        with torch.no_grad():
+            torch.testing.assert_close(victim.act(obs, victim.prepare(first)), victim.act(obs, first),
+                                       atol=1e-5, rtol=1e-4)
+    victim.split_forward = False  # as for a model whose blocks the split does not reproduce
+    assert victim.prepare(context) is context
+
+
 def gym_box(size, bound=np.inf):
     import gymnasium as gym
 

@@ -51,7 +51,7 @@ from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.store import LabelStore
 from rat.reports import AttackReport
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_jsonable
-from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence
+from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence, prepared
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
 REFINE_LOSSES = ("l2", "kl")  #: what refinement at attack time minimises (RATConfig.refine_loss)
@@ -200,7 +200,8 @@ class RefinedAttack:
     A sequence victim acts on its context too: the attack keeps each episode's own, from what it is told of
     every step (:meth:`observe`: the observation as the victim saw it, the action, the reward), exactly as
     the victim's keeper does, and refines Δ for the current observation with the context fixed — the past
-    perturbed states stay as they were seen (``docs/design.md`` §9, §10). ``gaps``, if given, receives the
+    perturbed states stay as they were seen (``docs/design.md`` §9, §10) — so the past runs through the victim
+    once per observation, not once per step (its ``prepare``, where it has one). ``gaps``, if given, receives the
     gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ left at each observation (whichever loss chose Δ).
 
     Called with one observation it is a :data:`~rat.attacks.threat.Perturbation`; :meth:`batch` refines the
@@ -260,8 +261,8 @@ class RefinedAttack:
         packed = None if self.contexts is None else torch.cat(
             [self.victim.pack_context(self._context(slot)) for slot in slots])
 
-        def context(rows=slice(None)):  # a sequence victim's contexts of these rows (None for a memoryless one)
-            return None if packed is None else self.victim.unpack_context(packed[rows])
+        def context(rows=slice(None)):  # a sequence victim's contexts of these rows, prepared to act on at every step
+            return None if packed is None else prepared(self.victim, self.victim.unpack_context(packed[rows]))
 
         with torch.no_grad():
             raw = torch.atanh(self.adversary(s).clamp(-0.999, 0.999))

@@ -64,6 +64,15 @@ class SequenceVictim(Victim, Protocol):
     def unpack_context(self, packed: torch.Tensor) -> Any:
         """The batch of contexts whose rows :meth:`pack_context` made."""
 
+    # Optional: ``prepare(context)``, the same context made ready to act on many observations (its past
+    # computed once); ``act`` in it gives the same actions. Attacks that act many times in one context use it.
+
+
+def prepared(victim: Victim, context: Any) -> Any:
+    """``context`` made ready for many observations where ``victim`` offers ``prepare``; else unchanged."""
+    prepare = getattr(victim, "prepare", None)
+    return context if prepare is None or context is None else prepare(context)
+
 
 def is_sequence(victim: Victim) -> bool:
     """Whether ``victim`` reads its history (its episodes start from a context that is not None)."""

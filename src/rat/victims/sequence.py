@@ -13,6 +13,8 @@ last K steps of (return-to-go, state, action) and predicts the next action. As a
 
 The model is causal, so only the current state's token depends on the current observation; the victim
 runs the tokens before it without gradients and that one token with them (:meth:`DecisionTransformerVictim._split_action`).
+Where many observations meet one context (an attacker refining Δ), ``prepare(context)`` runs the past
+once for all of them.
 
 The threat model for a sequence victim: each observation is perturbed once, when it is seen,
 and the perturbed state stays in the context — the victim never sees the true state of a past
@@ -79,6 +81,38 @@ class DTContext:
         return self.states, self.actions, self.returns_to_go, self.timesteps, self.mask
 
 
+@dataclass(frozen=True)
+class PastKeysValues:
+    """The attention inputs of the tokens before the current state, per block (see ``_split_action``).
+
+    Attributes:
+        qkv: per transformer block, its query-key-value projection of the past tokens, ``[B, T, 3·hidden]``.
+        mask: ``[B, T]`` 1 where a past token exists.
+    """
+
+    qkv: tuple[torch.Tensor, ...]
+    mask: torch.Tensor
+
+    def repeat(self, n: int) -> "PastKeysValues":
+        return PastKeysValues(tuple(x.expand(n, *x.shape[1:]) for x in self.qkv), self.mask.expand(n, -1))
+
+
+@dataclass(frozen=True)
+class PreparedContext:
+    """A context whose past has run through the model once (:meth:`DecisionTransformerVictim.prepare`).
+
+    Acting in it runs only the current state's token: the same actions as in ``context`` (to the split's
+    tolerance, :meth:`DecisionTransformerVictim._split_matches_model`), for any number of observations.
+    """
+
+    context: DTContext
+    past: PastKeysValues
+    timestep: torch.Tensor  #: ``[B, 1]`` the coming step's timestep, as the model reads it
+
+    def repeat(self, n: int) -> "PreparedContext":
+        return PreparedContext(self.context.repeat(n), self.past.repeat(n), self.timestep.expand(n, -1))
+
+
 class DecisionTransformerVictim(nn.Module):
     """A frozen Decision Transformer as a :class:`~rat.victims.base.Victim` (see the module docstring).
 
@@ -129,6 +163,11 @@ class DecisionTransformerVictim(nn.Module):
         """
         obs = obs.float()
         batch = obs.shape[0]
+        if isinstance(context, PreparedContext):
+            context = context if context.timestep.shape[0] == batch else context.repeat(batch)
+            state = ((obs - self.state_mean) / self.state_std).unsqueeze(1)
+            action = self._current_action(state, context.timestep, context.past)
+            return torch.max(torch.min(action, self.high), self.low)
         if context is None:
             context = self.initial_context(batch)
         if context.states.shape[0] != batch:
@@ -138,6 +177,19 @@ class DecisionTransformerVictim(nn.Module):
         split = self.split_forward and torch.is_grad_enabled() and obs.requires_grad
         action = self._split_action(*inputs) if split else self._model_action(*inputs)
         return torch.max(torch.min(action, self.high), self.low)
+
+    def prepare(self, context: DTContext) -> DTContext | PreparedContext:
+        """``context`` made ready to act on many observations: its past tokens run through the model once, here.
+
+        An attacker refining one observation's Δ acts in the same context at every step; in the prepared
+        context each step runs the current state's token alone, where :meth:`act` in ``context`` would run
+        the past again each time. A model the split does not reproduce gets ``context`` back.
+        """
+        if not self.split_forward:
+            return context
+        placeholder = torch.zeros(context.states.shape[0], self.observation_space.shape[0], device=context.states.device)
+        states, actions, rtg, timesteps, mask = self._inputs(placeholder, context)  # the past does not read it
+        return PreparedContext(context, self._past(states, actions, rtg, timesteps, mask), timesteps[:, -1:])
 
     def _inputs(self, obs: torch.Tensor, context: DTContext) -> tuple[torch.Tensor, ...]:
         """The model's inputs over the K steps, as in training: normalised states, padding zeroed and masked."""
@@ -166,8 +218,12 @@ class DecisionTransformerVictim(nn.Module):
         gradients. An attacker's gradient (and the weighting network's second-order one) is the same as
         through the whole model at about half the cost; :meth:`_split_matches_model` checks the two agree.
         """
-        model, encoder = self.model, self.model.encoder
-        hidden = model.hidden_size
+        past = self._past(states, actions, rtg, timesteps, mask)
+        return self._current_action(states[:, -1:], timesteps[:, -1:], past)
+
+    def _past(self, states, actions, rtg, timesteps, mask) -> PastKeysValues:
+        """The keys and values of the tokens before the current state, from one pass without gradients."""
+        encoder = self.model.encoder
         with torch.no_grad():
             past_tokens = self._tokens(states, actions, rtg, timesteps)[:, :-2]  # up to the coming return-to-go
             past_mask = mask.repeat_interleave(3, dim=1)[:, :-2]
@@ -179,13 +235,19 @@ class DecisionTransformerVictim(nn.Module):
             finally:
                 for hook in hooks:
                     hook.remove()
-        x = model.embed_ln(model.embed_state(states[:, -1:]) + model.embed_timestep(timesteps[:, -1:]))
-        x = x + encoder.wpe(torch.zeros_like(timesteps[:, -1:]))  # every token sits at position 0 in the DT
-        blocked = torch.cat([past_mask, torch.ones_like(mask[:, :1])], 1) == 0  # [B, T]
+        return PastKeysValues(tuple(qkv), past_mask)
+
+    def _current_action(self, state, timestep, past: PastKeysValues) -> torch.Tensor:
+        """The action from the current state's token (``state`` normalised, ``[B, 1, obs_dim]``) after ``past``."""
+        model, encoder = self.model, self.model.encoder
+        hidden = model.hidden_size
+        x = model.embed_ln(model.embed_state(state) + model.embed_timestep(timestep))
+        x = x + encoder.wpe(torch.zeros_like(timestep))  # every token sits at position 0 in the DT
+        blocked = torch.cat([past.mask, torch.ones_like(past.mask[:, :1])], 1) == 0  # [B, T]
         heads = model.config.n_head
         split = lambda t: t.reshape(t.shape[0], t.shape[1], heads, -1).transpose(1, 2)  # noqa: E731 [B, h, T, d]
-        for layer, (block, past) in enumerate(zip(encoder.h, qkv)):
-            _, past_keys, past_values = past.split(hidden, dim=2)
+        for layer, (block, qkv) in enumerate(zip(encoder.h, past.qkv)):
+            _, past_keys, past_values = qkv.split(hidden, dim=2)
             query, key, value = block.attn.c_attn(block.ln_1(x)).split(hidden, dim=2)
             query, keys, values = split(query), split(torch.cat([past_keys, key], 1)), split(torch.cat([past_values, value], 1))
             scores = (query @ keys.transpose(-1, -2)) * self._attention_scale(layer, query.shape[-1])
