@@ -101,16 +101,15 @@ class PastKeysValues:
 class PreparedContext:
     """A context whose past has run through the model once (:meth:`DecisionTransformerVictim.prepare`).
 
-    Acting in it runs only the current state's token: the same actions as in ``context`` (to the split's
+    Acting in it runs only the current state's token: the same actions as in the context it was made from (to the split's
     tolerance, :meth:`DecisionTransformerVictim._split_matches_model`), for any number of observations.
     """
 
-    context: DTContext
     past: PastKeysValues
     timestep: torch.Tensor  #: ``[B, 1]`` the coming step's timestep, as the model reads it
 
     def repeat(self, n: int) -> "PreparedContext":
-        return PreparedContext(self.context.repeat(n), self.past.repeat(n), self.timestep.expand(n, -1))
+        return PreparedContext(self.past.repeat(n), self.timestep.expand(n, -1))
 
 
 class DecisionTransformerVictim(nn.Module):
@@ -189,7 +188,7 @@ class DecisionTransformerVictim(nn.Module):
             return context
         placeholder = torch.zeros(context.states.shape[0], self.observation_space.shape[0], device=context.states.device)
         states, actions, rtg, timesteps, mask = self._inputs(placeholder, context)  # the past does not read it
-        return PreparedContext(context, self._past(states, actions, rtg, timesteps, mask), timesteps[:, -1:])
+        return PreparedContext(self._past(states, actions, rtg, timesteps, mask), timesteps[:, -1:])
 
     def _inputs(self, obs: torch.Tensor, context: DTContext) -> tuple[torch.Tensor, ...]:
         """The model's inputs over the K steps, as in training: normalised states, padding zeroed and masked."""
