@@ -160,13 +160,16 @@ class DecisionTransformerVictim(nn.Module):
 
         ``context`` holds one episode (shared by the whole batch) or one per observation.
         """
-        obs = obs.float()
+        action = self._action(obs.float(), context)
+        return torch.max(torch.min(action, self.high), self.low)
+
+    def _action(self, obs: torch.Tensor, context: DTContext | PreparedContext | None) -> torch.Tensor:
+        """The model's action for ``obs`` after ``context``, before it is clipped to the action space."""
         batch = obs.shape[0]
         if isinstance(context, PreparedContext):
             context = context if context.timestep.shape[0] == batch else context.repeat(batch)
             state = ((obs - self.state_mean) / self.state_std).unsqueeze(1)
-            action = self._current_action(state, context.timestep, context.past)
-            return torch.max(torch.min(action, self.high), self.low)
+            return self._current_action(state, context.timestep, context.past)
         if context is None:
             context = self.initial_context(batch)
         if context.states.shape[0] != batch:
@@ -174,8 +177,7 @@ class DecisionTransformerVictim(nn.Module):
         inputs = self._inputs(obs, context)
         # the split pays off where a gradient flows back to obs; acting alone, one whole pass is faster
         split = self.split_forward and torch.is_grad_enabled() and obs.requires_grad
-        action = self._split_action(*inputs) if split else self._model_action(*inputs)
-        return torch.max(torch.min(action, self.high), self.low)
+        return self._split_action(*inputs) if split else self._model_action(*inputs)
 
     def prepare(self, context: DTContext) -> DTContext | PreparedContext:
         """``context`` made ready to act on many observations: its past tokens run through the model once, here.
