@@ -32,17 +32,17 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:
-        _, actor, meta = load_saved(args.run)
+        _, imitated, meta = load_saved(args.run)
     except RatError as exc:
         parser.error(str(exc))
-    if actor is None:
+    if imitated is None:
         parser.error(f"'{args.run}' holds no intention policy (saved by an older version); run its `rat attack train` "
                      "command again to rewrite it")
     target = get_target(meta["target"])
 
     @torch.no_grad()
     def act(obs: np.ndarray) -> np.ndarray:
-        return actor(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+        return imitated.intention(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
 
     result = evaluate(act, make_task(target.env_task(meta["task"]), seed=1), args.episodes, args.seed, target=target)
     print(f"π_θ alone at '{target.name}': {result.success_rate:.1%} over {args.episodes} episodes")

@@ -281,10 +281,52 @@ def test_refinement_by_the_kl_favours_the_action_dimensions_pi_theta_is_sure_of(
     assert stats.wilcoxon(sure["l2"], sure["kl"], alternative="greater").pvalue < 1e-3
     assert whole["l2"].mean() < whole["kl"].mean()  # each loss wins on its own terms
     np.testing.assert_allclose(reported, whole["kl"], rtol=1e-4, atol=1e-5)  # the gap reported is ‖·‖, either way
-    with pytest.raises(RatError, match="refine-loss must be one of l2, kl"):
+    with pytest.raises(RatError, match="refine-loss must be one of l2, kl, q"):
         refined_function(adversary, intention.actor, victim, threat, 5, loss="cosine")
-    with pytest.raises(RatError, match="refine-loss must be one of l2, kl"):
+    with pytest.raises(RatError, match="refine-loss must be one of l2, kl, q"):
         RATConfig(refine_loss="cosine")
+
+
+class FirstDimensionCritic(torch.nn.Module):
+    """A critic that values only the first action dimension, raising it: Q(s, a) = a₀ (both heads)."""
+
+    def forward(self, obs, action):
+        return action[:, 0], action[:, 0]
+
+
+def test_refinement_by_the_critic_climbs_q_where_the_gap_loss_chases_pi_thetas_action():
+    victim, intention, adversary, _, _, _ = isolation_setup()
+    threat, obs = ThreatModel(0.5), np.random.default_rng(0).normal(size=(40, 4))
+    critic, before = FirstDimensionCritic(), snapshot(victim, intention.critic)
+    first = {}  # the attacked victim's first action dimension, by refinement loss
+    for loss, steps in (("network", 0), ("l2", 30), ("q", 30)):
+        values = []
+        for o in obs:
+            delta = refined_function(adversary, intention.actor, victim, threat, steps, loss="l2" if steps == 0 else loss,
+                                     critic=critic)(o)
+            assert np.abs(delta).max() < 1.0  # through tanh: inside the ball
+            s = torch.as_tensor(o, dtype=torch.float32).unsqueeze(0)
+            with torch.no_grad():
+                values.append(victim.act(threat.perturb(s, torch.as_tensor(delta).float().unsqueeze(0)))[0, 0].item())
+        first[loss] = np.array(values)
+    assert (first["q"] >= first["network"] - 1e-6).all()  # the best Δ seen: never below where it starts
+    assert first["q"].mean() > first["l2"].mean() + 0.1, (first["q"].mean(), first["l2"].mean())
+    assert stats.wilcoxon(first["q"], first["l2"], alternative="greater").pvalue < 1e-3
+    # π_θ's own twin critic: each state's min Q never falls below the network's Δ's, and nothing trains
+    for o in obs[:5]:
+        s = torch.as_tensor(o, dtype=torch.float32).unsqueeze(0)
+        q = {}
+        for steps in (0, 20):
+            delta = refined_function(adversary, intention.actor, victim, threat, steps, loss="q",
+                                     critic=intention.critic)(o)
+            with torch.no_grad():
+                q[steps] = torch.min(*intention.critic(
+                    s, victim.act(threat.perturb(s, torch.as_tensor(delta).float().unsqueeze(0))))).item()
+        assert q[20] >= q[0] - 1e-5
+    assert not changed(before[0], victim) and not changed(before[1], intention.critic)
+    assert all(p.grad is None for p in [*victim.parameters(), *intention.critic.parameters()])
+    with pytest.raises(RatError, match="refine-loss 'q' climbs π_θ's critic, and none was given"):
+        refined_function(adversary, intention.actor, victim, threat, 5, loss="q")
 
 
 @pytest.mark.parametrize("normalise", [False, True])
@@ -383,9 +425,13 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
             last.weight.zero_()
             last.bias.zero_()
             last.bias[2] = 3.0 * (i - 1)  # the mean of Δ for the observed goal's x
-        pi_theta = {"trunk.0.weight": torch.full((8, 4), float(i))}  # the π_θ each snapshot imitated
+        pi_theta, critic = TanhGaussianActor(4, 2, 8, 1), TwinCritic(4, 2, 8, 1)  # what each snapshot imitated
+        with torch.no_grad():
+            pi_theta.trunk[0].weight.fill_(float(i))
+            critic.q1[0].bias.fill_(float(i))
         save_checkpoint(tmp_path / f"adversary-{1000 * (i + 1)}", "adversary-snapshot",
-                        {"adversary": snap.state_dict(), "intention": pi_theta}, {"step": 1000 * (i + 1)})
+                        {"adversary": snap.state_dict(), "intention": pi_theta.state_dict(),
+                         "critic": critic.state_dict()}, {"step": 1000 * (i + 1)})
     current = Adversary(4, 16)  # the adversary at the end of training: another candidate ("last")
     scores = [learned_return(victim, a, PointGoal(3), reward, cfg.threat, 3, seed=3 * 10**7) for a in snapshots + [current]]
     expected = [a.state_dict() for a in snapshots + [current]][int(np.argmax(scores))]
@@ -396,7 +442,9 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
     assert all(torch.equal(a, b) for a, b in zip(current.state_dict().values(), expected.values()))
     assert max(result["learned_returns"].values()) == pytest.approx(max(scores), abs=1e-3)
     assert len(set(round(x, 6) for x in scores)) == 4 and best == 2  # they differ; shifting the goal right wins
-    assert torch.equal(result["intention"]["trunk.0.weight"], torch.full((8, 4), 2.0))  # refine towards its own π_θ
+    # refine towards its own π_θ, with its own critic
+    assert torch.equal(result["imitated"].intention.trunk[0].weight, torch.full((8, 4), 2.0))
+    assert torch.equal(result["imitated"].critic.q1[0].bias, torch.full((8,), 2.0))
     with pytest.raises(RatError, match="oracle"):
         from rat.preferences.pebble import PebbleConfig
         RATConfig(select="reward", pebble=PebbleConfig(oracle=True))

@@ -142,6 +142,7 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     assert report.max_perturbation <= 0.1 + 1e-9
     state, meta = load_checkpoint(tmp_path / "run" / "adversary")
     assert meta["rat"]["refine_steps"] == 10 and set(state["intention"]) >= {"trunk.0.weight"}
+    assert set(state["critic"]) >= {"q1.0.weight", "q2.0.weight"}  # and its critic, for refine-loss q
     # the kept adversary is saved with the π_θ it imitated: a snapshot's own, or the last one's
     step = report.details["selected_step"]
     imitated = load_checkpoint(tmp_path / "run" / ("snapshots/adversary-%d" % step if step < 1000 else "adversary-last"))[0]
@@ -154,10 +155,10 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     from rat.attacks.rat import load_saved
 
     snapshot = load_checkpoint(tmp_path / "run" / "snapshots" / "adversary-500")[0]["adversary"]
-    adversary_500, intention_500, meta_500 = load_saved(tmp_path / "run" / "snapshots" / "adversary-500.json")
+    adversary_500, imitated_500, meta_500 = load_saved(tmp_path / "run" / "snapshots" / "adversary-500.json")
     assert meta_500["snapshot_step"] == 500 and meta_500["rat"] == meta["rat"] and "snapshot_step" not in meta
     assert all(torch.equal(adversary_500.state_dict()[k], snapshot[k]) for k in snapshot)
-    assert torch.equal(intention_500.state_dict()["trunk.0.weight"], pi_500["trunk.0.weight"])
+    assert torch.equal(imitated_500.intention.state_dict()["trunk.0.weight"], pi_500["trunk.0.weight"])
     # ... before its run has finished (its own metadata), and as written before snapshots kept more than their step
     import shutil
 
@@ -197,6 +198,23 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     np.testing.assert_allclose(last(obs), load_rat_attack(tmp_path / "run" / "adversary-last", victim)(obs))
     assert not np.allclose(load_attack(tmp_path / "run" / "adversary-last", victim)[0](obs),
                            load_attack(tmp_path / "run", victim)[0](obs))
+    # refined by π_θ's critic: its own, saved with it; a file saved without one (older version) takes the run's
+    # last checkpoint's critic where that checkpoint's π_θ is the one saved, and else says what to do
+    by_q = load_rat_attack(tmp_path / "run", victim, refine_loss="q")(obs)
+    assert not np.allclose(by_q, network(obs)) and not np.allclose(by_q, load_rat_attack(tmp_path / "run", victim)(obs))
+    agent = load_checkpoint(tmp_path / "run" / "checkpoint", part=("learner", "agent"))[0]
+    actor = {k.removeprefix("actor."): v for k, v in agent.items() if k.startswith("actor.")}
+    critic = {k.removeprefix("critic."): v for k, v in agent.items() if k.startswith("critic.")}
+    save_checkpoint(tmp_path / "run" / "adversary", "adversary", {"adversary": state["adversary"], "intention": actor,
+                                                                   "critic": critic}, meta)
+    with_critic = load_rat_attack(tmp_path / "run", victim, refine_loss="q")(obs)
+    save_checkpoint(tmp_path / "run" / "adversary", "adversary", {"adversary": state["adversary"], "intention": actor},
+                    meta)
+    np.testing.assert_allclose(load_rat_attack(tmp_path / "run", victim, refine_loss="q")(obs), with_critic)
+    save_checkpoint(tmp_path / "run" / "adversary", "adversary",
+                    {"adversary": state["adversary"], "intention": {k: v + 0.5 for k, v in actor.items()}}, meta)
+    with pytest.raises(RatError, match="refine-loss 'q' climbs π_θ's critic, and '.*' saved none"):
+        load_rat_attack(tmp_path / "run", victim, refine_loss="q")
     # an adversary saved without π_θ (by an older version) still attacks, but cannot be refined, and says what to do
     save_checkpoint(tmp_path / "run" / "adversary", "adversary", {"adversary": state["adversary"]}, meta)
     np.testing.assert_allclose(load_rat_attack(tmp_path / "run", victim, refine_steps=0)(obs), network(obs))

@@ -75,6 +75,16 @@ class TwinCritic(nn.Module):
         self.q1 = mlp(obs_dim + act_dim, 1, hidden, layers)
         self.q2 = mlp(obs_dim + act_dim, 1, hidden, layers)
 
+    @classmethod
+    def from_state_dict(cls, weights: dict[str, torch.Tensor], obs_dim: int) -> "TwinCritic":
+        """A critic of the shape ``weights`` have (as :meth:`state_dict` gave them), loaded with them."""
+        linear = sorted((k for k in weights if k.startswith("q1.") and k.endswith(".weight")),
+                        key=lambda k: int(k.split(".")[1]))
+        first = weights[linear[0]]
+        critic = cls(obs_dim, first.shape[1] - obs_dim, first.shape[0], len(linear) - 1)
+        critic.load_state_dict(weights)
+        return critic
+
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = torch.cat([obs, action], dim=-1)
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)

@@ -33,8 +33,8 @@ import numpy as np
 import torch
 
 from rat import seeds
-from rat.agents.networks import TanhGaussianActor
-from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack, saved_attack_meta
+from rat.agents.networks import TanhGaussianActor, TwinCritic
+from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack, saved_attack_meta, saved_attack_path
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
 from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
                                intention_gaussian, saturation)
@@ -54,7 +54,7 @@ from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_json
 from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence, prepared
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
-REFINE_LOSSES = ("l2", "kl")  #: what refinement at attack time minimises (RATConfig.refine_loss)
+REFINE_LOSSES = ("l2", "kl", "q")  #: what refinement at attack time minimises (RATConfig.refine_loss)
 ANCHORS = ("clean", "attacked")  #: which victim action the intention anchor pulls towards (RATConfig.anchor_to)
 
 
@@ -96,7 +96,7 @@ class RATConfig:
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
-    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap, or "kl", the adversary's own loss
+    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap; "kl", the adversary's own loss; "q", −Q_φ
     intention_anchor: float = 0.0  #: λ: π_θ learns from r̂ − λ‖a − μ_ν(s)‖², near the victim's clean action (0: off)
     anchor_to: str = "clean"  #: the anchor's action: the victim's "clean" μ_ν(s), or "attacked" μ_ν(s + εΔ(s)) under the current adversary
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
@@ -186,6 +186,36 @@ def adversary_function(adversary: Adversary) -> Perturbation:
     return delta
 
 
+@dataclass(frozen=True)
+class Imitated:
+    """The π_θ an adversary imitated, and its critic Q_φ, as saved beside the adversary: what refinement
+    aims at (``critic`` is None in files saved before it was kept)."""
+
+    intention: TanhGaussianActor
+    critic: TwinCritic | None = None
+
+    @classmethod
+    def of(cls, objective: Imitation) -> "Imitated":
+        return cls(objective.intention, objective.critic)
+
+    @classmethod
+    def from_state(cls, state: dict) -> "Imitated | None":
+        """The π_θ and critic in a saved adversary's state; None where it holds no π_θ (an older version's)."""
+        if "intention" not in state:
+            return None
+        intention = TanhGaussianActor.from_state_dict(state["intention"]).requires_grad_(False)
+        critic = state.get("critic")
+        return cls(intention, None if critic is None else
+                   TwinCritic.from_state_dict(critic, intention.obs_dim).requires_grad_(False))
+
+    def state_dict(self) -> dict:
+        critic = {} if self.critic is None else {"critic": self.critic.state_dict()}
+        return {"intention": self.intention.state_dict(), **critic}
+
+    def to(self, device) -> "Imitated":
+        return Imitated(self.intention.to(device), None if self.critic is None else self.critic.to(device))
+
+
 class RefinedAttack:
     """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §10).
 
@@ -193,7 +223,10 @@ class RefinedAttack:
     the perturbation in the ball) minimise this one state's imitation loss: ``loss="l2"``, the squared
     gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖², every action dimension alike; ``loss="kl"``, the adversary's own
     training loss at this state, KL(N(μ_ν(s̃), σ_v²) ‖ π_θ(s)) (``victim_std``, ``kl_form``), which weighs
-    each dimension by π_θ's confidence in it. The Δ with the smallest loss seen is used. The steps start
+    each dimension by π_θ's confidence in it; ``loss="q"``, the paper's outer objective at this state,
+    −min Q_φ(s, μ_ν(s̃)) with π_θ's critic (``critic``): where π_θ's action lies beyond what the ball can make
+    the victim take, the action within reach that π_θ's critic values most, rather than the one nearest π_θ's
+    (a departure; ``docs/design.md`` §10). The Δ with the smallest loss seen is used. The steps start
     from the network's Δ or from the Δ chosen at the episode's previous observation, whichever leaves the
     smaller loss here (consecutive states are close). It needs what training already does — the victim's
     gradient and π_θ — and costs ``steps`` forward and backward passes of the victim per observation.
@@ -212,9 +245,13 @@ class RefinedAttack:
 
     def __init__(self, adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
                  steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
-                 victim_std: float = 1.0, kl_form: str = "exact"):
+                 victim_std: float = 1.0, kl_form: str = "exact", critic: TwinCritic | None = None):
         check_refine_loss(loss)
+        if loss == "q" and critic is None:
+            raise RatError("refine-loss 'q' climbs π_θ's critic, and none was given; give the critic saved with the "
+                           "adversary, or refine with 'l2' or 'kl'")
         self.adversary, self.intention, self.victim, self.threat = adversary, intention, victim, threat
+        self.critic = critic
         self.steps, self.lr, self.gaps, self.loss = steps, lr, gaps, loss
         self.victim_std, self.kl_form = victim_std, kl_form
         self.device = next(adversary.parameters()).device
@@ -246,9 +283,12 @@ class RefinedAttack:
     def _losses(self, s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor,
                 context=None) -> torch.Tensor:
         """Each row's loss (one per observation; ``context``: a sequence victim's, one row each)."""
+        action = self._action(s, raw, context)
         if self.loss == "kl":
-            return gaussian_kl(self._action(s, raw, context), self.victim_std, mean, log_std, self.kl_form)
-        return (self._action(s, raw, context) - mean).pow(2).sum(-1)
+            return gaussian_kl(action, self.victim_std, mean, log_std, self.kl_form)
+        if self.loss == "q":
+            return -torch.min(*self.critic(s, action))
+        return (action - mean).pow(2).sum(-1)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         return self.batch(np.asarray(obs)[None], [0])[0]
@@ -501,26 +541,27 @@ class RATTrainer:
 
     # --- evaluation and state ----------------------------------------------------------------------
 
-    def attack(self, refine: bool = False, intention: TanhGaussianActor | None = None,
+    def attack(self, refine: bool = False, imitated: "Imitated | None" = None,
                gaps: list[float] | None = None) -> Perturbation:
-        """The attack as deployed: the adversary's Δ, refined towards π_θ (``intention``, else the one imitated
+        """The attack as deployed: the adversary's Δ, refined towards π_θ (``imitated``, else the one imitated
         now) if ``refine`` and ``refine_steps`` say so; ``gaps`` then receives the gap left at each observation."""
         cfg = self.config
         if refine and cfg.refine_steps:
-            target = intention if intention is not None else self.objective().intention
-            return refined_function(self.adversary, target, self.victim, cfg.threat, cfg.refine_steps, cfg.refine_lr,
-                                    gaps, loss=cfg.refine_loss, victim_std=cfg.victim_std, kl_form=cfg.kl_form)
+            imitated = imitated or Imitated(self.objective().intention, self.objective().critic)
+            return refined_function(self.adversary, imitated.intention, self.victim, cfg.threat, cfg.refine_steps,
+                                    cfg.refine_lr, gaps, loss=cfg.refine_loss, victim_std=cfg.victim_std,
+                                    kl_form=cfg.kl_form, critic=imitated.critic)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
-                        intention: TanhGaussianActor | None = None, gaps: list[float] | None = None,
+                        imitated: "Imitated | None" = None, gaps: list[float] | None = None,
                         desc: str | None = None) -> AttackEval:
         """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``).
         ``desc``: show a progress bar over the episodes with this label (the final evaluations, which a refined
         attack makes long)."""
         cfg = self.config
         make_env = lambda: self.setup.make_env(cfg.seed + seeds.EVAL_ENV)  # noqa: E731 (more of it: lockstep)
-        return evaluate_attack(self.victim, self.attack(refine, intention, gaps), make_env(), self.target, cfg.threat,
+        return evaluate_attack(self.victim, self.attack(refine, imitated, gaps), make_env(), self.target, cfg.threat,
                                episodes, seed, video=video, progress=desc is not None and self.setup.progress,
                                desc=desc or "", make_env=make_env)
 
@@ -528,7 +569,7 @@ class RATTrainer:
         """The attack now, and a snapshot of the adversary with the π_θ it imitated (for selection by r̂)."""
         res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
         save_checkpoint(self.snapshots / f"adversary-{self.step}", SNAPSHOT,
-                        {"adversary": self.adversary.state_dict(), "intention": self.objective().intention.state_dict()},
+                        {"adversary": self.adversary.state_dict(), **Imitated.of(self.objective()).state_dict()},
                         self.meta() | {"step": self.step})
         # π_θ is a candidate once it has learnt from r̂: at the first query round it is still the pre-training
         # explorer, which a young r̂ can score above the learning π_θ for tens of thousands of steps
@@ -598,24 +639,24 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     # --- results -------------------------------------------------------------------------------------
     adversary = trainer.adversary
     meta = trainer.meta()
-    # π_θ as the adversary imitated it, saved beside it: refinement (refine_steps) aims at its actions
-    pi_theta = trainer.objective().intention
+    # π_θ as the adversary imitated it, and its critic, saved beside it: refinement (refine_steps) aims at them
+    imitated = Imitated.of(trainer.objective())
     details: dict = {"ablation": cfg.ablation, "queries_asked": trainer.learner.asked, **trainer.counters}
     if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
         save_checkpoint(run.dir / "adversary-last", "adversary",
-                        {"adversary": adversary.state_dict(), "intention": pi_theta.state_dict()}, meta)
+                        {"adversary": adversary.state_dict(), **imitated.state_dict()}, meta)
         last = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, desc="the last adversary")
         selected = select_by_learned_reward(trainer.snapshots, adversary, trainer.victim, trainer.learner.ensemble,
                                             setup.make_env(cfg.seed + seeds.SELECTION_ENV), cfg)
-        imitated = selected.pop("intention")  # a snapshot's: the π_θ it imitated, not the last one
-        if imitated is not None:
-            pi_theta = TanhGaussianActor.from_state_dict(imitated).to(trainer.device).requires_grad_(False)
+        snapshot = selected.pop("imitated")  # a snapshot's: the π_θ it imitated, not the last one
+        if snapshot is not None:
+            imitated = snapshot.to(trainer.device)
         details.update(selected, last_attack_success_rate=last.result.success_rate)
     if cfg.refine_steps:  # the network's Δ alone, beside the refined attack
         details["network_attack_success_rate"] = trainer.evaluate_attack(
             cfg.final_eval_episodes, seeds.FINAL, desc="the network's Δ alone").result.success_rate
     gaps: list[float] = []  # what refinement left of ‖μ_ν(s̃) − tanh μ_θ(s)‖ along the attacked episodes
-    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, intention=pi_theta, gaps=gaps,
+    final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, imitated=imitated, gaps=gaps,
                                     desc="the attack")
     if gaps:  # large where π_θ asks for actions the ball cannot make the victim take (benchmarks/strength.md)
         details["refined_gap"] = float(np.mean(gaps))
@@ -623,8 +664,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
     clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
                            seeds.FINAL, progress=setup.progress)
-    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(),
-                                                          "intention": pi_theta.state_dict()},
+    save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(), **imitated.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
     if cfg.refine_steps:  # the evaluations during training measure the network's Δ; the attack refines it
         plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success",
@@ -679,13 +719,13 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
     """Load into ``adversary`` the snapshot (or the last one) whose attack the final r̂ scores highest.
 
     Every candidate is scored on the same episodes; ties go to the later one. Uses no true reward.
-    Returns the selected step, every candidate's score and, as ``intention``, the state of the π_θ a
-    selected snapshot imitated (None for the last adversary, or a snapshot saved without it).
+    Returns the selected step, every candidate's score and, as ``imitated``, the π_θ a selected snapshot
+    imitated, with its critic (None for the last adversary, or a snapshot saved without π_θ).
     """
     candidates = {"last": ({k: v.clone() for k, v in adversary.state_dict().items()}, None)}
     for path in sorted(snapshots.glob("adversary-*.json"), key=lambda p: int(p.stem.split("-")[1])):
         state = load_checkpoint(path, SNAPSHOT)[0]
-        candidates[path.stem.split("-")[1]] = (state["adversary"], state.get("intention"))
+        candidates[path.stem.split("-")[1]] = (state["adversary"], Imitated.from_state(state))
     scores = {}
     for name, (state, _) in candidates.items():
         adversary.load_state_dict(state)
@@ -694,7 +734,7 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
     best = max(reversed(order), key=lambda n: scores[n])
     adversary.load_state_dict(candidates[best][0])
     return {"selected_step": cfg.total_steps if best == "last" else int(best),
-            "learned_returns": {n: round(v, 3) for n, v in scores.items()}, "intention": candidates[best][1]}
+            "learned_returns": {n: round(v, 3) for n, v in scores.items()}, "imitated": candidates[best][1]}
 
 
 def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
@@ -703,10 +743,10 @@ def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
     return adversary, meta
 
 
-def load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, dict]:
+def load_saved(path: str | Path) -> tuple[Adversary, Imitated | None, dict]:
     """The adversary of ``<run>/adversary`` (or of another saved adversary file, a snapshot
-    ``<run>/snapshots/adversary-<step>`` too), the π_θ it imitated (None if the run predates saving it) and
-    the metadata."""
+    ``<run>/snapshots/adversary-<step>`` too), the π_θ it imitated with its critic (None if the run predates
+    saving π_θ) and the metadata."""
     path = Path(path)
     if path.is_dir():
         path = path / "adversary"
@@ -715,9 +755,23 @@ def load_saved(path: str | Path) -> tuple[Adversary, TanhGaussianActor | None, d
     adversary = Adversary(int(meta["obs_dim"]), int(meta["adversary_hidden"]))
     adversary.load_state_dict(state["adversary"])
     adversary.eval().requires_grad_(False)
-    intention = TanhGaussianActor.from_state_dict(state["intention"]).requires_grad_(False) \
-        if "intention" in state else None
-    return adversary, intention, meta
+    return adversary, Imitated.from_state(state), meta
+
+
+def with_checkpoint_critic(imitated: Imitated, checkpoint: Path) -> Imitated:
+    """``imitated`` with the critic of RAT's training checkpoint ``checkpoint``, if there is one whose π_θ it is.
+
+    For files saved before critics were kept beside π_θ: a run's final adversary imitated the π_θ of its
+    last checkpoint whenever it kept the last adversary.
+    """
+    if not checkpoint.with_suffix(".json").exists():
+        return imitated
+    agent, _ = load_checkpoint(checkpoint, RATTrainer.kind, part=("learner", "agent"))
+    mine = imitated.intention.state_dict()
+    if any(not torch.equal(agent.get(f"actor.{k}", torch.empty(0)), v) for k, v in mine.items()):
+        return imitated
+    critic = {k.removeprefix("critic."): v for k, v in agent.items() if k.startswith("critic.")}
+    return replace(imitated, critic=TwinCritic.from_state_dict(critic, imitated.intention.obs_dim).requires_grad_(False))
 
 
 def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
@@ -725,7 +779,7 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
     Adam steps per observation minimising ``refine_loss`` (None: as the run was configured; 0 steps: the
     network's Δ alone). ``gaps``, if given, receives the gap refinement leaves at each observation."""
-    adversary, intention, meta = load_saved(run)
+    adversary, imitated, meta = load_saved(run)
     cfg = meta.get("rat", {})
     steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
     if steps < 0:
@@ -735,14 +789,20 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
             raise RatError(f"refine-loss '{refine_loss}' chooses what refinement minimises, and '{run}' refines "
                            "0 steps; give --refine-steps N (N > 0) with it")
         return adversary_function(adversary)
-    if intention is None:
+    if imitated is None:
         raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
                        "run its `rat attack train` command again to rewrite it, or evaluate without refinement")
-    return refined_function(adversary, intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
-                            cfg.get("refine_lr", RATConfig.refine_lr), gaps,
-                            loss=refine_loss or cfg.get("refine_loss", RATConfig.refine_loss),
+    loss = refine_loss or cfg.get("refine_loss", RATConfig.refine_loss)
+    if loss == "q" and imitated.critic is None:
+        saved = saved_attack_path(run)
+        imitated = with_checkpoint_critic(imitated, (saved if saved.is_dir() else saved.parent) / "checkpoint")
+    if loss == "q" and imitated.critic is None:
+        raise RatError(f"refine-loss 'q' climbs π_θ's critic, and '{run}' saved none beside its adversary (older "
+                       "version, and no checkpoint of the same π_θ); refine with 'l2' or 'kl'")
+    return refined_function(adversary, imitated.intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
+                            cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss,
                             victim_std=cfg.get("victim_std", RATConfig.victim_std),
-                            kl_form=cfg.get("kl_form", RATConfig.kl_form))
+                            kl_form=cfg.get("kl_form", RATConfig.kl_form), critic=imitated.critic)
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))
