@@ -42,7 +42,7 @@ def main() -> None:
 
     @torch.no_grad()
     def act(obs: np.ndarray) -> np.ndarray:
-        return imitated.intention(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
+        return imitated.actor(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).numpy()
 
     result = evaluate(act, make_task(target.env_task(meta["task"]), seed=1), args.episodes, args.seed, target=target)
     print(f"π_θ alone at '{target.name}': {result.success_rate:.1%} over {args.episodes} episodes")

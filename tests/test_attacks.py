@@ -443,7 +443,7 @@ def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_p
     assert max(result["learned_returns"].values()) == pytest.approx(max(scores), abs=1e-3)
     assert len(set(round(x, 6) for x in scores)) == 4 and best == 2  # they differ; shifting the goal right wins
     # refine towards its own π_θ, with its own critic
-    assert torch.equal(result["imitated"].intention.trunk[0].weight, torch.full((8, 4), 2.0))
+    assert torch.equal(result["imitated"].actor.trunk[0].weight, torch.full((8, 4), 2.0))
     assert torch.equal(result["imitated"].critic.q1[0].bias, torch.full((8,), 2.0))
     with pytest.raises(RatError, match="oracle"):
         from rat.preferences.pebble import PebbleConfig

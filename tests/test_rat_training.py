@@ -158,7 +158,7 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     adversary_500, imitated_500, meta_500 = load_saved(tmp_path / "run" / "snapshots" / "adversary-500.json")
     assert meta_500["snapshot_step"] == 500 and meta_500["rat"] == meta["rat"] and "snapshot_step" not in meta
     assert all(torch.equal(adversary_500.state_dict()[k], snapshot[k]) for k in snapshot)
-    assert torch.equal(imitated_500.intention.state_dict()["trunk.0.weight"], pi_500["trunk.0.weight"])
+    assert torch.equal(imitated_500.actor.state_dict()["trunk.0.weight"], pi_500["trunk.0.weight"])
     # ... before its run has finished (its own metadata), and as written before snapshots kept more than their step
     import shutil
 

@@ -187,33 +187,33 @@ def adversary_function(adversary: Adversary) -> Perturbation:
 
 
 @dataclass(frozen=True)
-class Imitated:
-    """The π_θ an adversary imitated, and its critic Q_φ, as saved beside the adversary: what refinement
-    aims at (``critic`` is None in files saved before it was kept)."""
+class IntentionPolicy:
+    """The π_θ an adversary imitated, its actor and its critic Q_φ, as saved beside the adversary: what
+    refinement aims at (``critic`` is None in files saved before it was kept)."""
 
-    intention: TanhGaussianActor
+    actor: TanhGaussianActor
     critic: TwinCritic | None = None
 
     @classmethod
-    def of(cls, objective: Imitation) -> "Imitated":
+    def of(cls, objective: Imitation) -> "IntentionPolicy":
         return cls(objective.intention, objective.critic)
 
     @classmethod
-    def from_state(cls, state: dict) -> "Imitated | None":
-        """The π_θ and critic in a saved adversary's state; None where it holds no π_θ (an older version's)."""
+    def from_state(cls, state: dict) -> "IntentionPolicy | None":
+        """The π_θ in a saved adversary's state; None where it holds none (an older version's)."""
         if "intention" not in state:
             return None
-        intention = TanhGaussianActor.from_state_dict(state["intention"]).requires_grad_(False)
+        actor = TanhGaussianActor.from_state_dict(state["intention"]).requires_grad_(False)
         critic = state.get("critic")
-        return cls(intention, None if critic is None else
-                   TwinCritic.from_state_dict(critic, intention.obs_dim).requires_grad_(False))
+        return cls(actor, None if critic is None else
+                   TwinCritic.from_state_dict(critic, actor.obs_dim).requires_grad_(False))
 
     def state_dict(self) -> dict:
         critic = {} if self.critic is None else {"critic": self.critic.state_dict()}
-        return {"intention": self.intention.state_dict(), **critic}
+        return {"intention": self.actor.state_dict(), **critic}
 
-    def to(self, device) -> "Imitated":
-        return Imitated(self.intention.to(device), None if self.critic is None else self.critic.to(device))
+    def to(self, device) -> "IntentionPolicy":
+        return IntentionPolicy(self.actor.to(device), None if self.critic is None else self.critic.to(device))
 
 
 class RefinedAttack:
@@ -541,20 +541,20 @@ class RATTrainer:
 
     # --- evaluation and state ----------------------------------------------------------------------
 
-    def attack(self, refine: bool = False, imitated: "Imitated | None" = None,
+    def attack(self, refine: bool = False, imitated: IntentionPolicy | None = None,
                gaps: list[float] | None = None) -> Perturbation:
         """The attack as deployed: the adversary's Δ, refined towards π_θ (``imitated``, else the one imitated
         now) if ``refine`` and ``refine_steps`` say so; ``gaps`` then receives the gap left at each observation."""
         cfg = self.config
         if refine and cfg.refine_steps:
-            imitated = imitated or Imitated(self.objective().intention, self.objective().critic)
-            return refined_function(self.adversary, imitated.intention, self.victim, cfg.threat, cfg.refine_steps,
+            imitated = imitated or IntentionPolicy.of(self.objective())
+            return refined_function(self.adversary, imitated.actor, self.victim, cfg.threat, cfg.refine_steps,
                                     cfg.refine_lr, gaps, loss=cfg.refine_loss, victim_std=cfg.victim_std,
                                     kl_form=cfg.kl_form, critic=imitated.critic)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
-                        imitated: "Imitated | None" = None, gaps: list[float] | None = None,
+                        imitated: IntentionPolicy | None = None, gaps: list[float] | None = None,
                         desc: str | None = None) -> AttackEval:
         """The attack's success now. Evaluations during training use the network's Δ alone (``refine=False``).
         ``desc``: show a progress bar over the episodes with this label (the final evaluations, which a refined
@@ -569,7 +569,7 @@ class RATTrainer:
         """The attack now, and a snapshot of the adversary with the π_θ it imitated (for selection by r̂)."""
         res = self.evaluate_attack(self.config.eval_episodes, seeds.periodic(self.step))
         save_checkpoint(self.snapshots / f"adversary-{self.step}", SNAPSHOT,
-                        {"adversary": self.adversary.state_dict(), **Imitated.of(self.objective()).state_dict()},
+                        {"adversary": self.adversary.state_dict(), **IntentionPolicy.of(self.objective()).state_dict()},
                         self.meta() | {"step": self.step})
         # π_θ is a candidate once it has learnt from r̂: at the first query round it is still the pre-training
         # explorer, which a young r̂ can score above the learning π_θ for tens of thousands of steps
@@ -640,7 +640,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     adversary = trainer.adversary
     meta = trainer.meta()
     # π_θ as the adversary imitated it, and its critic, saved beside it: refinement (refine_steps) aims at them
-    imitated = Imitated.of(trainer.objective())
+    imitated = IntentionPolicy.of(trainer.objective())
     details: dict = {"ablation": cfg.ablation, "queries_asked": trainer.learner.asked, **trainer.counters}
     if cfg.select == "reward":  # the attacker's own yardstick: r̂, never the true target reward
         save_checkpoint(run.dir / "adversary-last", "adversary",
@@ -725,7 +725,7 @@ def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Vict
     candidates = {"last": ({k: v.clone() for k, v in adversary.state_dict().items()}, None)}
     for path in sorted(snapshots.glob("adversary-*.json"), key=lambda p: int(p.stem.split("-")[1])):
         state = load_checkpoint(path, SNAPSHOT)[0]
-        candidates[path.stem.split("-")[1]] = (state["adversary"], Imitated.from_state(state))
+        candidates[path.stem.split("-")[1]] = (state["adversary"], IntentionPolicy.from_state(state))
     scores = {}
     for name, (state, _) in candidates.items():
         adversary.load_state_dict(state)
@@ -743,7 +743,7 @@ def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
     return adversary, meta
 
 
-def load_saved(path: str | Path) -> tuple[Adversary, Imitated | None, dict]:
+def load_saved(path: str | Path) -> tuple[Adversary, IntentionPolicy | None, dict]:
     """The adversary of ``<run>/adversary`` (or of another saved adversary file, a snapshot
     ``<run>/snapshots/adversary-<step>`` too), the π_θ it imitated with its critic (None if the run predates
     saving π_θ) and the metadata."""
@@ -755,10 +755,10 @@ def load_saved(path: str | Path) -> tuple[Adversary, Imitated | None, dict]:
     adversary = Adversary(int(meta["obs_dim"]), int(meta["adversary_hidden"]))
     adversary.load_state_dict(state["adversary"])
     adversary.eval().requires_grad_(False)
-    return adversary, Imitated.from_state(state), meta
+    return adversary, IntentionPolicy.from_state(state), meta
 
 
-def with_checkpoint_critic(imitated: Imitated, checkpoint: Path) -> Imitated:
+def with_checkpoint_critic(imitated: IntentionPolicy, checkpoint: Path) -> IntentionPolicy:
     """``imitated`` with the critic of RAT's training checkpoint ``checkpoint``, if there is one whose π_θ it is.
 
     For files saved before critics were kept beside π_θ: a run's final adversary imitated the π_θ of its
@@ -767,11 +767,11 @@ def with_checkpoint_critic(imitated: Imitated, checkpoint: Path) -> Imitated:
     if not checkpoint.with_suffix(".json").exists():
         return imitated
     agent, _ = load_checkpoint(checkpoint, RATTrainer.kind, part=("learner", "agent"))
-    mine = imitated.intention.state_dict()
+    mine = imitated.actor.state_dict()
     if any(not torch.equal(agent.get(f"actor.{k}", torch.empty(0)), v) for k, v in mine.items()):
         return imitated
     critic = {k.removeprefix("critic."): v for k, v in agent.items() if k.startswith("critic.")}
-    return replace(imitated, critic=TwinCritic.from_state_dict(critic, imitated.intention.obs_dim).requires_grad_(False))
+    return replace(imitated, critic=TwinCritic.from_state_dict(critic, imitated.actor.obs_dim).requires_grad_(False))
 
 
 def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
@@ -799,7 +799,7 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if loss == "q" and imitated.critic is None:
         raise RatError(f"refine-loss 'q' climbs π_θ's critic, and '{run}' saved none beside its adversary (older "
                        "version, and no checkpoint of the same π_θ); refine with 'l2' or 'kl'")
-    return refined_function(adversary, imitated.intention, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
+    return refined_function(adversary, imitated.actor, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
                             cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss,
                             victim_std=cfg.get("victim_std", RATConfig.victim_std),
                             kl_form=cfg.get("kl_form", RATConfig.kl_form), critic=imitated.critic)
