@@ -759,7 +759,8 @@ def load_saved(path: str | Path) -> tuple[Adversary, IntentionPolicy | None, dic
 
 
 def with_checkpoint_critic(imitated: IntentionPolicy, checkpoint: Path) -> IntentionPolicy:
-    """``imitated`` with the critic of RAT's training checkpoint ``checkpoint``, if there is one whose π_θ it is.
+    """``imitated`` with a critic from RAT's training checkpoint ``checkpoint``: the critic beside the π_θ there
+    that is ``imitated``'s — the live one's, or the kept one's (``imitate="best"``) — if either is.
 
     For files saved before critics were kept beside π_θ: a run's final adversary imitated the π_θ of its
     last checkpoint whenever it kept the last adversary.
@@ -767,11 +768,18 @@ def with_checkpoint_critic(imitated: IntentionPolicy, checkpoint: Path) -> Inten
     if not checkpoint.with_suffix(".json").exists():
         return imitated
     agent, _ = load_checkpoint(checkpoint, RATTrainer.kind, part=("learner", "agent"))
+    pairs = [{part: {k.removeprefix(part + "."): v for k, v in agent.items() if k.startswith(part + ".")}
+              for part in ("actor", "critic")}]
+    try:
+        pairs.append(load_checkpoint(checkpoint, RATTrainer.kind, part=("best",))[0])
+    except RatError:  # no kept π_θ in this run
+        pass
     mine = imitated.actor.state_dict()
-    if any(not torch.equal(agent.get(f"actor.{k}", torch.empty(0)), v) for k, v in mine.items()):
-        return imitated
-    critic = {k.removeprefix("critic."): v for k, v in agent.items() if k.startswith("critic.")}
-    return replace(imitated, critic=TwinCritic.from_state_dict(critic, imitated.actor.obs_dim).requires_grad_(False))
+    for pair in pairs:
+        if all(k in pair["actor"] and torch.equal(pair["actor"][k], v) for k, v in mine.items()):
+            critic = TwinCritic.from_state_dict(pair["critic"], imitated.actor.obs_dim).requires_grad_(False)
+            return replace(imitated, critic=critic)
+    return imitated
 
 
 def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
