@@ -329,6 +329,31 @@ def test_refinement_by_the_critic_climbs_q_where_the_gap_loss_chases_pi_thetas_a
         refined_function(adversary, intention.actor, victim, threat, 5, loss="q")
 
 
+def test_refinement_by_l2_or_q_takes_the_critics_delta_exactly_where_l2_leaves_a_gap_above_the_threshold():
+    victim, intention, adversary, _, _, _ = isolation_setup()
+    threat, obs, critic = ThreatModel(0.5), np.random.default_rng(0).normal(size=(40, 4)), FirstDimensionCritic()
+
+    def refine(loss, **kwargs):  # each state on its own: Δ, and the gap left
+        deltas, gaps = [], []
+        for o in obs:
+            deltas.append(refined_function(adversary, intention.actor, victim, threat, 30, gaps=gaps, loss=loss,
+                                           critic=critic, **kwargs)(o))
+        return np.array(deltas), np.array(gaps)
+
+    (by_l2, l2_gaps), (by_q, _) = refine("l2"), refine("q")
+    threshold = float(np.median(l2_gaps))
+    mixed, _ = refine("l2-or-q", switch_gap=threshold)
+    far = l2_gaps > threshold
+    assert 0 < far.sum() < len(obs) and np.abs(by_q - by_l2).max(axis=1).min() > 1e-3  # the two losses differ
+    np.testing.assert_allclose(mixed[~far], by_l2[~far], atol=1e-6)
+    np.testing.assert_allclose(mixed[far], by_q[far], atol=1e-6)
+    np.testing.assert_allclose(refine("l2-or-q", switch_gap=float("inf"))[0], by_l2, atol=1e-6)
+    with pytest.raises(RatError, match="refine-loss 'l2-or-q' climbs π_θ's critic, and none was given"):
+        refined_function(adversary, intention.actor, victim, threat, 5, loss="l2-or-q")
+    with pytest.raises(RatError, match="refine-switch-gap must be ≥ 0"):
+        RATConfig(refine_switch_gap=-1.0)
+
+
 @pytest.mark.parametrize("normalise", [False, True])
 def test_outer_step_moves_only_the_weighting_network(normalise):
     victim, intention, adversary, weighting, cfg, obs = isolation_setup()

@@ -54,7 +54,8 @@ from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_json
 from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence, prepared
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
-REFINE_LOSSES = ("l2", "kl", "q")  #: what refinement at attack time minimises (RATConfig.refine_loss)
+REFINE_LOSSES = ("l2", "kl", "q", "l2-or-q")  #: what refinement at attack time minimises (RATConfig.refine_loss)
+CRITIC_LOSSES = ("q", "l2-or-q")  #: the refinement losses that need π_θ's critic
 ANCHORS = ("clean", "attacked")  #: which victim action the intention anchor pulls towards (RATConfig.anchor_to)
 
 
@@ -96,7 +97,8 @@ class RATConfig:
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
-    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap; "kl", the adversary's own loss; "q", −Q_φ
+    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap; "kl", the adversary's own loss; "q", −Q_φ; "l2-or-q": l2, and −Q_φ where l2 leaves a gap above refine_switch_gap
+    refine_switch_gap: float = 1.0  #: refine_loss="l2-or-q": the gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ above which an observation is refined by −Q_φ
     intention_anchor: float = 0.0  #: λ: π_θ learns from r̂ − λ‖a − μ_ν(s)‖², near the victim's clean action (0: off)
     anchor_to: str = "clean"  #: the anchor's action: the victim's "clean" μ_ν(s), or "attacked" μ_ν(s + εΔ(s)) under the current adversary
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
@@ -121,6 +123,8 @@ class RATConfig:
             raise RatError("weighting-norm=batch needs hypergradient=exact: the batch-mean approximation moves only "
                            "the weights' mean, which normalised weights ignore")
         check_refine_loss(self.refine_loss)
+        if self.refine_switch_gap < 0:
+            raise RatError(f"refine-switch-gap must be ≥ 0, got {self.refine_switch_gap}")
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
         if not 0 <= self.from_reset <= 1:
@@ -226,7 +230,8 @@ class RefinedAttack:
     each dimension by π_θ's confidence in it; ``loss="q"``, the paper's outer objective at this state,
     −min Q_φ(s, μ_ν(s̃)) with π_θ's critic (``critic``): where π_θ's action lies beyond what the ball can make
     the victim take, the action within reach that π_θ's critic values most, rather than the one nearest π_θ's
-    (a departure; ``docs/design.md`` §10). The Δ with the smallest loss seen is used. The steps start
+    (a departure; ``docs/design.md`` §10); ``loss="l2-or-q"``, ``l2``, then ``q`` at the observations where ``l2``
+    leaves a gap above ``switch_gap`` (π_θ's action out of reach). The Δ with the smallest loss seen is used. The steps start
     from the network's Δ or from the Δ chosen at the episode's previous observation, whichever leaves the
     smaller loss here (consecutive states are close). It needs what training already does — the victim's
     gradient and π_θ — and costs ``steps`` forward and backward passes of the victim per observation.
@@ -245,15 +250,16 @@ class RefinedAttack:
 
     def __init__(self, adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
                  steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
-                 victim_std: float = 1.0, kl_form: str = "exact", critic: TwinCritic | None = None):
+                 victim_std: float = 1.0, kl_form: str = "exact", critic: TwinCritic | None = None,
+                 switch_gap: float = RATConfig.refine_switch_gap):
         check_refine_loss(loss)
-        if loss == "q" and critic is None:
-            raise RatError("refine-loss 'q' climbs π_θ's critic, and none was given; give the critic saved with the "
-                           "adversary, or refine with 'l2' or 'kl'")
+        if loss in CRITIC_LOSSES and critic is None:
+            raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and none was given; give the critic saved with "
+                           "the adversary, or refine with 'l2' or 'kl'")
         self.adversary, self.intention, self.victim, self.threat = adversary, intention, victim, threat
         self.critic = critic
         self.steps, self.lr, self.gaps, self.loss = steps, lr, gaps, loss
-        self.victim_std, self.kl_form = victim_std, kl_form
+        self.victim_std, self.kl_form, self.switch_gap = victim_std, kl_form, switch_gap
         self.device = next(adversary.parameters()).device
         self.previous: dict[int, torch.Tensor] = {}  # per episode slot: the last Δ chosen there, before tanh
         self.contexts: dict[int, object] | None = {} if is_sequence(victim) else None  # per slot: the victim's
@@ -281,12 +287,12 @@ class RefinedAttack:
         return self.victim.act(self.threat.perturb(s, torch.tanh(raw)), context)
 
     def _losses(self, s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor,
-                context=None) -> torch.Tensor:
-        """Each row's loss (one per observation; ``context``: a sequence victim's, one row each)."""
+                context, loss: str) -> torch.Tensor:
+        """Each row's ``loss`` (one per observation; ``context``: a sequence victim's, one row each)."""
         action = self._action(s, raw, context)
-        if self.loss == "kl":
+        if loss == "kl":
             return gaussian_kl(action, self.victim_std, mean, log_std, self.kl_form)
-        if self.loss == "q":
+        if loss == "q":
             return -torch.min(*self.critic(s, action))
         return (action - mean).pow(2).sum(-1)
 
@@ -304,20 +310,43 @@ class RefinedAttack:
         def context(rows=slice(None)):  # a sequence victim's contexts of these rows, prepared to act on at every step
             return None if packed is None else prepared(self.victim, self.victim.unpack_context(packed[rows]))
 
+        rows = list(range(len(s)))
+        best = self._refine(s, mean, log_std, slots, rows, context, "l2" if self.loss == "l2-or-q" else self.loss)
+        if self.loss == "l2-or-q" or self.gaps is not None:
+            with torch.no_grad():
+                gap = (self._action(s, best, context()) - mean).norm(dim=-1)
+        if self.loss == "l2-or-q":  # refined again by π_θ's critic where π_θ's action is out of reach
+            far = [i for i in rows if gap[i] > self.switch_gap]
+            if far:
+                best[far] = self._refine(s, mean, log_std, slots, far, context, "q")
+                with torch.no_grad():
+                    gap[far] = (self._action(s[far], best[far], context(far)) - mean[far]).norm(dim=-1)
+        if self.gaps is not None:
+            self.gaps.extend(gap.tolist())
+        for i, slot in enumerate(slots):
+            self.previous[slot] = best[i:i + 1]
+        return torch.tanh(best).double().cpu().numpy()
+
+    def _refine(self, s: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor, slots: Sequence[int],
+                rows: list[int], context, loss: str) -> torch.Tensor:
+        """Δ before tanh for the batch's ``rows``: ``steps`` Adam steps on ``loss``, from the network's Δ or the
+        Δ chosen at the episode's previous observation, whichever ``loss`` prefers; the best seen."""
+        s, mean, log_std = s[rows], mean[rows], log_std[rows]
         with torch.no_grad():
             raw = torch.atanh(self.adversary(s).clamp(-0.999, 0.999))
-            known = [i for i, slot in enumerate(slots) if slot in self.previous]
+            known = [i for i, row in enumerate(rows) if slots[row] in self.previous]
             if known:  # the previous Δ where it fits this state better (a tie keeps the network's)
-                before, theirs = torch.cat([self.previous[slots[i]] for i in known]), context(known)
-                better = self._losses(s[known], before, mean[known], log_std[known], theirs) < \
-                    self._losses(s[known], raw[known], mean[known], log_std[known], theirs)
+                before = torch.cat([self.previous[slots[rows[i]]] for i in known])
+                theirs = context([rows[i] for i in known])
+                better = self._losses(s[known], before, mean[known], log_std[known], theirs, loss) < \
+                    self._losses(s[known], raw[known], mean[known], log_std[known], theirs, loss)
                 raw[known] = torch.where(better[:, None], before, raw[known])
         raw.requires_grad_(True)
         optimizer = torch.optim.Adam([raw], lr=self.lr)
         best, best_loss = raw.detach().clone(), torch.full((len(s),), float("inf"), device=self.device)
-        everyone = context()
+        theirs = context(rows)
         for step in range(self.steps + 1):  # the last pass only scores the last step
-            losses = self._losses(s, raw, mean, log_std, everyone)
+            losses = self._losses(s, raw, mean, log_std, theirs, loss)
             with torch.no_grad():
                 improved = losses < best_loss
                 best = torch.where(improved[:, None], raw, best)
@@ -326,12 +355,7 @@ class RefinedAttack:
                 optimizer.zero_grad(set_to_none=True)
                 losses.sum().backward(inputs=[raw])
                 optimizer.step()
-        if self.gaps is not None:
-            with torch.no_grad():
-                self.gaps.extend((self._action(s, best, everyone) - mean).norm(dim=-1).tolist())
-        for i, slot in enumerate(slots):
-            self.previous[slot] = best[i:i + 1]
-        return torch.tanh(best).double().cpu().numpy()
+        return best
 
 
 refined_function = RefinedAttack  # the name callers know: the adversary's Δ, refined at every observation
@@ -550,7 +574,7 @@ class RATTrainer:
             imitated = imitated or IntentionPolicy.of(self.objective())
             return refined_function(self.adversary, imitated.actor, self.victim, cfg.threat, cfg.refine_steps,
                                     cfg.refine_lr, gaps, loss=cfg.refine_loss, victim_std=cfg.victim_std,
-                                    kl_form=cfg.kl_form, critic=imitated.critic)
+                                    kl_form=cfg.kl_form, critic=imitated.critic, switch_gap=cfg.refine_switch_gap)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
@@ -801,16 +825,17 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
         raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
                        "run its `rat attack train` command again to rewrite it, or evaluate without refinement")
     loss = refine_loss or cfg.get("refine_loss", RATConfig.refine_loss)
-    if loss == "q" and imitated.critic is None:
+    if loss in CRITIC_LOSSES and imitated.critic is None:
         saved = saved_attack_path(run)
         imitated = with_checkpoint_critic(imitated, (saved if saved.is_dir() else saved.parent) / "checkpoint")
-    if loss == "q" and imitated.critic is None:
-        raise RatError(f"refine-loss 'q' climbs π_θ's critic, and '{run}' saved none beside its adversary (older "
+    if loss in CRITIC_LOSSES and imitated.critic is None:
+        raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and '{run}' saved none beside its adversary (older "
                        "version, and no checkpoint of the same π_θ); refine with 'l2' or 'kl'")
     return refined_function(adversary, imitated.actor, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
                             cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss,
                             victim_std=cfg.get("victim_std", RATConfig.victim_std),
-                            kl_form=cfg.get("kl_form", RATConfig.kl_form), critic=imitated.critic)
+                            kl_form=cfg.get("kl_form", RATConfig.kl_form), critic=imitated.critic,
+                            switch_gap=cfg.get("refine_switch_gap", RATConfig.refine_switch_gap))
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))
