@@ -325,3 +325,12 @@ def test_the_cpu_preset_spends_exactly_the_label_budget_by_the_stated_step(budge
     assert sum(n for _, n in rounds) == budget and config.pebble.budget == budget
     assert rounds[0][0] == config.pebble.warm_up  # the first round right after pre-training
     assert rounds[-1][0] <= max(config.pebble.warm_up, spend_by * steps)  # ... the last by the stated step
+
+
+def test_the_eval_commands_refine_loss_choices_are_the_librarys():
+    """The CLI keeps its imports light, so it lists the refinement losses itself; they must be the library's."""
+    from rat.attacks.rat import REFINE_LOSSES
+    from rat.cli import cli
+
+    option = next(p for p in cli.commands["attack"].commands["eval"].params if p.name == "refine_loss")
+    assert tuple(option.type.choices) == REFINE_LOSSES
