@@ -43,6 +43,8 @@ def main() -> None:
     parser.add_argument("--losses", default="l2,q", help="comma-separated refinement losses; the first is the baseline")
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--steps", type=int, default=None, help="refinement steps [the run's refine_steps]")
+    parser.add_argument("--switch-gap", type=float, default=None,
+                        help="l2-or-q's threshold, for that loss alone [the run's refine_switch_gap]")
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:
@@ -51,7 +53,8 @@ def main() -> None:
         attacks = {}
         for loss in args.losses.split(","):
             gaps: list[float] = []  # the gap each loss leaves to π_θ's actions, per observation
-            attacks[loss] = (load_rat_attack(args.run, victim, args.steps, gaps, loss), gaps)
+            attacks[loss] = (load_rat_attack(args.run, victim, args.steps, gaps, loss,
+                                                       args.switch_gap if loss == "l2-or-q" else None), gaps)
     except RatError as exc:
         parser.error(str(exc))
     threat, target = ThreatModel(cfg["epsilon"], cfg["norm"]), get_target(meta["target"])

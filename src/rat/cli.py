@@ -588,11 +588,15 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
               help="RAT only: what refinement minimises: the squared action gap (l2), the adversary's own "
                    "KL loss (kl), minus the intention policy's critic at the victim's action (q), or l2 and "
                    "then q where l2 leaves a gap above the run's refine_switch_gap (l2-or-q) [the run's refine_loss]")
+@click.option("--refine-switch-gap", type=float, default=None,
+              help="RAT, refine-loss l2-or-q only: the gap to π_θ's action above which an observation is refined "
+                   "by q [the run's refine_switch_gap]")
 @click.option("--lockstep", type=int, default=32, show_default=True,
               help="a refined RAT attack: this many episodes side by side, their observations refined together "
                    "(1: one episode at a time, as a video is)")
 @click.option("--json", "as_json", is_flag=True)
-def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, lockstep, as_json) -> None:
+def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, refine_switch_gap, lockstep,
+                as_json) -> None:
     """Evaluate the attack of RUN (RAT or a baseline) against its victim, beside the victim's clean behaviour.
     RUN may also name one adversary a RAT run saved: RUN/adversary-last, or RUN/snapshots/adversary-STEP."""
     from rat.experiments.runner import evaluate_saved_attack
@@ -605,7 +609,7 @@ def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, l
         if path is not None:
             check_writable_file(path, what)
     r = evaluate_saved_attack(run, episodes, seed, video, refine_steps=refine_steps, refine_loss=refine_loss,
-                              lockstep=lockstep)
+                              lockstep=lockstep, refine_switch_gap=refine_switch_gap)
     attacked, clean = r["attack"], r["clean"]
     if record is not None:
         attacked.write_records(record)

@@ -807,10 +807,12 @@ def with_checkpoint_critic(imitated: IntentionPolicy, checkpoint: Path) -> Inten
 
 
 def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
-                    gaps: list[float] | None = None, refine_loss: str | None = None) -> Perturbation:
+                    gaps: list[float] | None = None, refine_loss: str | None = None,
+                    switch_gap: float | None = None) -> Perturbation:
     """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
-    Adam steps per observation minimising ``refine_loss`` (None: as the run was configured; 0 steps: the
-    network's Δ alone). ``gaps``, if given, receives the gap refinement leaves at each observation."""
+    Adam steps per observation minimising ``refine_loss``, with ``switch_gap`` as ``l2-or-q``'s threshold
+    (None: as the run was configured; 0 steps: the network's Δ alone). ``gaps``, if given, receives the gap
+    refinement leaves at each observation."""
     adversary, imitated, meta = load_saved(run)
     cfg = meta.get("rat", {})
     steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
@@ -825,6 +827,11 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
         raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
                        "run its `rat attack train` command again to rewrite it, or evaluate without refinement")
     loss = refine_loss or cfg.get("refine_loss", RATConfig.refine_loss)
+    if switch_gap is not None and loss != "l2-or-q":  # asked for, but no pass would read it
+        raise RatError(f"refine-switch-gap is the threshold of refine-loss 'l2-or-q', and '{run}' is refined by "
+                       f"'{loss}'; give --refine-loss l2-or-q with it, or drop it")
+    if switch_gap is not None and switch_gap < 0:
+        raise RatError(f"refine-switch-gap must be ≥ 0, got {switch_gap}")
     if loss in CRITIC_LOSSES and imitated.critic is None:
         saved = saved_attack_path(run)
         imitated = with_checkpoint_critic(imitated, (saved if saved.is_dir() else saved.parent) / "checkpoint")
@@ -835,7 +842,8 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
                             cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss,
                             victim_std=cfg.get("victim_std", RATConfig.victim_std),
                             kl_form=cfg.get("kl_form", RATConfig.kl_form), critic=imitated.critic,
-                            switch_gap=cfg.get("refine_switch_gap", RATConfig.refine_switch_gap))
+                            switch_gap=cfg.get("refine_switch_gap", RATConfig.refine_switch_gap)
+                            if switch_gap is None else switch_gap)
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))

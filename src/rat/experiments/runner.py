@@ -61,25 +61,28 @@ def train_attack(method: str, setup: AttackSetup, config, out: str | Path) -> At
 
 def evaluate_saved_attack(run: str | Path, episodes: int = 30, seed: int = 0, video: str | Path | None = None,
                           progress: bool = True, video_episodes=2, refine_steps: int | None = None,
-                          refine_loss: str | None = None, lockstep: int = 32) -> dict:
+                          refine_loss: str | None = None, lockstep: int = 32,
+                          refine_switch_gap: float | None = None) -> dict:
     """Evaluate a saved attack (RAT's or a baseline's ``<run>/adversary``, or one RAT snapshot,
     ``<run>/snapshots/adversary-<step>``, with the π_θ it imitated) and, for comparison, the clean victim.
 
-    ``refine_steps`` and ``refine_loss`` (RAT only) override the run's refinement of Δ towards π_θ (0 steps:
-    the network's Δ alone); a refined attack runs ``lockstep`` episodes side by side (see
+    ``refine_steps``, ``refine_loss`` and ``refine_switch_gap`` (RAT only) override the run's refinement of Δ
+    towards π_θ (0 steps: the network's Δ alone); a refined attack runs ``lockstep`` episodes side by side (see
     :func:`~rat.attacks.evaluation.evaluate_attack`).
     """
     meta = saved_attack_meta(run)
     if "victim" not in meta or "task" not in meta:
         raise RatError(f"the attack in '{run}' does not record its victim and task (trained from Python with a "
                        "victim object, or its adversary.json was edited); evaluate it with rat.attacks.evaluate_attack")
-    if (refine_steps is not None or refine_loss is not None) and meta.get("method", "rat") != "rat":
-        raise RatError(f"--refine-steps and --refine-loss refine a RAT adversary towards its intention policy; "
-                       f"'{run}' is a {meta['method']} attack: drop them")
+    refining = (refine_steps, refine_loss, refine_switch_gap) != (None, None, None)
+    if refining and meta.get("method", "rat") != "rat":
+        raise RatError(f"--refine-steps, --refine-loss and --refine-switch-gap refine a RAT adversary towards its "
+                       f"intention policy; '{run}' is a {meta['method']} attack: drop them")
     victim = load_victim(meta["victim"])
     gaps: list[float] = []  # the gap a refined RAT attack leaves to π_θ's action, per observation
     if meta.get("method", "rat") == "rat":  # the run, or one adversary saved in it (adversary-last[.json])
-        perturbation = load_rat_attack(saved_attack_path(run), victim, refine_steps, gaps, refine_loss)
+        perturbation = load_rat_attack(saved_attack_path(run), victim, refine_steps, gaps, refine_loss,
+                                       refine_switch_gap)
     else:
         perturbation, meta = load_attack(run, victim)
     target = get_target(meta["target"])
