@@ -160,14 +160,14 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     assert result["clean_target_success_rate"] == 0.0  # the clean victim opens the drawer; it never reaches the goal
     assert result["refined_gap"] is None  # the network's Δ alone
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "1", "--refine-steps", "3",
-                         "--json")  # Δ refined towards the saved π_θ at every observation
+                         "--refine-loss", "l2", "--json")  # Δ refined towards the saved π_θ at every observation
     refined = __import__("json").loads(out)
     assert code == 0 and refined["within_budget"] and 0.0 <= refined["refined_gap"] < 2 * 4 ** 0.5, err
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "1", "--refine-steps", "3",
                          "--refine-loss", "l2-or-q", "--refine-switch-gap", "1e9", "--json")  # no gap is above it
     assert code == 0 and __import__("json").loads(out)["refined_gap"] == refined["refined_gap"], err  # so l2's alone
-    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "run"), "--refine-steps", "3",
-                           "--refine-switch-gap", "0.5")[::2], "give --refine-loss l2-or-q with it")
+    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "run"), "--refine-steps", "3", "--refine-loss",
+                           "kl", "--refine-switch-gap", "0.5")[::2], "give --refine-loss l2-or-q with it")
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "run"), "--refine-steps", "3", "--refine-loss",
                            "l2-or-q", "--refine-switch-gap", "-1")[::2], "refine-switch-gap must be ≥ 0")
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run" / "adversary.json"), "--episodes", "1",

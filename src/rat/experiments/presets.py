@@ -90,7 +90,11 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
     settings = dict(total_steps=total, adversary_batch=256, weighting_every=weighting_every, pebble=pebble,
                     select="reward", imitate="best") | (SMOKE_EVALUATION if preset == "smoke" else {})
     if manipulation:
-        settings |= dict(select="last", imitate="current", refine_steps=50)
+        # Departure, measured on the SAC faucet and drawer victims' rows, 3 seeds each (benchmarks/strength.md,
+        # "Refining by l2, and by π_θ's critic where l2 falls short"): Δ refined by l2, then by π_θ's critic
+        # where l2 leaves a gap above 1: faucet 100 / 96.7 / 96.7% (l2 alone: 100 / 100 / 56.7%), drawer at
+        # 10⁵ steps 96.7 / 86.7 / 60.0% (93.3 / 33.3 / 3.3%). refine_loss="l2" is one --set away.
+        settings |= dict(select="last", imitate="current", refine_steps=50, refine_loss="l2-or-q")
     return RATConfig(**(settings | overrides))
 
 
