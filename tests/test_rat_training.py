@@ -187,6 +187,8 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     np.testing.assert_allclose(network(obs), adversary_function(adversary)(obs))  # 0 steps: the network's Δ
     with pytest.raises(RatError, match="refines 0 steps; give --refine-steps"):
         load_rat_attack(tmp_path / "run", victim, refine_steps=0, refine_loss="kl")  # not silently ignored
+    with pytest.raises(RatError, match="refines 0 steps; give --refine-steps"):
+        load_rat_attack(tmp_path / "run", victim, refine_steps=0, switch_gap=0.5)  # nor is l2-or-q's threshold
     assert not np.allclose(load_rat_attack(tmp_path / "run", victim)(obs), network(obs))  # as configured: refined
     # a run's other saved adversary loads as itself, not as the run's kept one
     from rat.attacks.base import load_attack

@@ -819,9 +819,10 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if steps < 0:
         raise RatError(f"refine-steps must be ≥ 0, got {steps}")
     if not steps:
-        if refine_loss is not None:  # asked for, but nothing would be refined: say so rather than ignore it
-            raise RatError(f"refine-loss '{refine_loss}' chooses what refinement minimises, and '{run}' refines "
-                           "0 steps; give --refine-steps N (N > 0) with it")
+        if refine_loss is not None or switch_gap is not None:  # asked for, but nothing would be refined: say so
+            what = f"refine-loss '{refine_loss}'" if refine_loss is not None else f"refine-switch-gap {switch_gap}"
+            raise RatError(f"{what} chooses how Δ is refined, and '{run}' refines 0 steps; give --refine-steps N "
+                           "(N > 0) with it")
         return adversary_function(adversary)
     if imitated is None:
         raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
