@@ -352,6 +352,8 @@ def test_refinement_by_l2_or_q_takes_the_critics_delta_exactly_where_l2_leaves_a
         refined_function(adversary, intention.actor, victim, threat, 5, loss="l2-or-q")
     with pytest.raises(RatError, match="refine-switch-gap must be ≥ 0"):
         RATConfig(refine_switch_gap=-1.0)
+    with pytest.raises(RatError, match="refine-switch-gap must be ≥ 0"):  # nor past the config, from a saved run
+        refined_function(adversary, intention.actor, victim, threat, 5, loss="l2-or-q", critic=critic, switch_gap=-1.0)
 
 
 @pytest.mark.parametrize("normalise", [False, True])

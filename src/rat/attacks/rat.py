@@ -253,6 +253,8 @@ class RefinedAttack:
                  victim_std: float = 1.0, kl_form: str = "exact", critic: TwinCritic | None = None,
                  switch_gap: float = RATConfig.refine_switch_gap):
         check_refine_loss(loss)
+        if switch_gap < 0:
+            raise RatError(f"refine-switch-gap must be ≥ 0, got {switch_gap}")
         if loss in CRITIC_LOSSES and critic is None:
             raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and none was given; give the critic saved with "
                            "the adversary, or refine with 'l2' or 'kl'")
@@ -831,8 +833,6 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
     if switch_gap is not None and loss != "l2-or-q":  # asked for, but no pass would read it
         raise RatError(f"refine-switch-gap is the threshold of refine-loss 'l2-or-q', and '{run}' is refined by "
                        f"'{loss}'; give --refine-loss l2-or-q with it, or drop it")
-    if switch_gap is not None and switch_gap < 0:
-        raise RatError(f"refine-switch-gap must be ≥ 0, got {switch_gap}")
     if loss in CRITIC_LOSSES and imitated.critic is None:
         saved = saved_attack_path(run)
         imitated = with_checkpoint_critic(imitated, (saved if saved.is_dir() else saved.parent) / "checkpoint")
