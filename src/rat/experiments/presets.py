@@ -93,8 +93,8 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
         # Departure, measured on the SAC faucet and drawer victims' rows, 3 seeds each (benchmarks/strength.md,
         # "Refining by l2, and by π_θ's critic where l2 falls short"): Δ refined by l2, then by π_θ's critic
         # where l2 leaves a gap above 1: faucet 100 / 96.7 / 96.7% (l2 alone: 100 / 100 / 56.7%), drawer at
-        # 10⁵ steps 96.7 / 86.7 / 60.0% (93.3 / 33.3 / 3.3%); level with l2 on three runs outside those its
-        # threshold came from (77 vs 75 of 90 episodes). refine_loss="l2" is one --set away.
+        # 10⁵ steps 96.7 / 86.7 / 60.0% (93.3 / 33.3 / 3.3%); on six runs outside those its threshold came from
+        # 112 vs 104 of 180 episodes (p = 0.18: not worse, not shown better). refine_loss="l2" is one --set away.
         settings |= dict(select="last", imitate="current", refine_steps=50, refine_loss="l2-or-q")
     return RATConfig(**(settings | overrides))
 
