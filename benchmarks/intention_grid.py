@@ -105,7 +105,7 @@ def table(cells: list[tuple[str, str, int, str, int, Path]]) -> str:
             + (f"{100 * final['target_success_rate']:.1f}%" if done else state) + " | "
             + (f"{reached // 1000}k" if reached is not None else "never" if done else "not yet") + " | "
             + (f"{100 * min(after):.0f}%" if after else "–") + f" | {kept} | "
-            + (f"{final['train_minutes_this_session']:.0f}" if done else "–") + " |")
+            + (f"{final['train_minutes']:.0f}" if done else "–") + " |")
     return "\n".join(lines) + "\n"
 
 
