@@ -152,6 +152,10 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
     report = train_attack("rat", attack_setup("zoo:drawer-open-v3", "reach", progress=False), cfg, tmp_path / "run")
     assert report.labels == 40 and report.details["adversary_updates"] > 0 and report.details["weighting_updates"] > 0
     assert report.max_perturbation <= 0.1 + 1e-9
+    from PIL import Image
+
+    assert Image.open(tmp_path / "run" / "training.png").text["Title"] == \
+        "RAT reach against zoo:drawer-open-v3 attack success during training"
 
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run"), "--episodes", "2", "--json")
     assert code == 0, err

@@ -38,3 +38,21 @@ def test_the_training_plot_marks_the_deployed_attack_where_evaluations_measured_
     marked = plot_training(metrics, tmp_path / "marked.png", "t", curve="the network's Δ alone",
                            final=(2000, 0.933, "the attack, Δ refined"))
     assert red_pixels(marked) > 50
+
+
+def test_a_rat_training_plot_names_its_victim_and_where_the_behaviour_is_sought(tmp_path):
+    """Two all-zero runs' plots were byte for byte the same: a reader could not tell which run a plot was of."""
+    from PIL import Image
+
+    from rat.attacks.rat import training_title
+    from rat.plots import plot_training
+
+    opposite = {"victim": "zoo:window-open-v3", "victim_task": "window-open-v3", "task": "window-close-v3"}
+    assert training_title("opposite", opposite) == "RAT opposite against zoo:window-open-v3 in window-close-v3"
+    assert training_title("reach", dict(opposite, task="window-open-v3")) == "RAT reach against zoo:window-open-v3"
+    assert training_title("reach", {}) == "RAT reach"  # a setup built in code, with nothing described
+    metrics = tmp_path / "metrics.csv"
+    metrics.write_text("step,eval_success_rate\n1000,0.0\n")
+    title = training_title("opposite", opposite)
+    png = plot_training(metrics, tmp_path / "training.png", f"{title}\nattack success during training")
+    assert Image.open(png).text["Title"] == f"{title} attack success during training"  # readable without looking

@@ -61,8 +61,8 @@ def plot_training(metrics_csv: Path, path: Path, title: str, curve: str = "evalu
     ax.set_xlabel("environment steps")
     ax.set_ylabel("target success (%)")
     ax.set_ylim(-3, 103)
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, metadata={"Title": title.replace("\n", " ")})  # the words, for a reader of the file
     plt.close(fig)
     return path

@@ -640,6 +640,17 @@ def as_run(config: RATConfig, env: gym.Env) -> RATConfig:
     return replace(config, horizon=config.horizon or episode_length(env))
 
 
+def training_title(target: str, describe: dict) -> str:
+    """What a run's plot is of, so that two runs' plots are told apart: the target, the victim, and the task the
+    behaviour is sought in where that is not the victim's own (an opposite row)."""
+    title = f"RAT {target}"
+    if describe.get("victim"):
+        title += f" against {describe['victim']}"
+    if describe.get("task") and describe.get("task") != describe.get("victim_task"):
+        title += f" in {describe['task']}"
+    return title
+
+
 def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboard: bool = False) -> AttackReport:
     """Train a RAT adversary against ``setup.victim`` for ``setup.target`` (resumable from ``out``).
 
@@ -692,13 +703,14 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
                            seeds.FINAL, progress=setup.progress)
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(), **imitated.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
+    title = training_title(target.name, setup.describe)
     if cfg.refine_steps:  # the evaluations during training measure the network's Δ; the attack refines it
-        plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success",
+        plot_training(run.logger.path, run.dir / "training.png", f"{title}\nattack success",
                       curve="the network's Δ alone, during training",
                       final=(trainer.step, final.result.success_rate,
                              f"the attack, Δ refined ({cfg.final_eval_episodes} episodes)"))
     else:
-        plot_training(run.logger.path, run.dir / "training.png", f"RAT {target.name}: attack success during training")
+        plot_training(run.logger.path, run.dir / "training.png", f"{title}\nattack success during training")
     report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
                           labels=store.count(trainer.learner.source), minutes=train_seconds / 60,
                           train_minutes=loop.total_seconds / 60, details=details,
