@@ -171,6 +171,49 @@ def test_a_round_can_be_capped_in_gradient_steps_whatever_the_labels_held():
     assert uncapped.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, y, rng)["reward_updates"] == 32
 
 
+def test_a_held_out_round_learns_as_well_and_stops_itself_keeping_each_members_best_weights():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    train, test = synthetic_pairs(600, rng), synthetic_pairs(500, rng)
+    y = ScriptedTeacher().label(train, rng).y
+    config = RewardModelConfig(hidden=32, layers=2, lr=1e-3, batch_size=64, max_updates=2000, holdout=0.1,
+                               check_every=10, patience=2, precision="bf16")
+    ensemble = RewardEnsemble(4, 1, config)
+    held = ensemble.held_out(600)
+    assert held.sum() == 60 and np.array_equal(held[:300], ensemble.held_out(300))  # a label keeps its side
+    metrics = ensemble.train_round(train.obs0, train.act0, train.obs1, train.act1, y, rng)
+    assert 0 < metrics["reward_updates"] < 2000  # stopped by the held-out pairs, not the cap
+    # each member's held-out loss at its kept weights is the round's best, i.e. no worse than where it stopped
+    data = [torch.as_tensor(np.asarray(a, np.float32)) for a in (train.obs0, train.act0, train.obs1, train.act1, y)]
+    idx = torch.as_tensor(np.flatnonzero(held))
+    losses = [ensemble._held_out_loss(net, data, idx)[0] for net in ensemble.nets]
+    assert np.isclose(np.mean(losses), metrics["reward_loss"], rtol=1e-4)
+    learned = ensemble.r_hat(test.obs1, test.act1).sum(1) - ensemble.r_hat(test.obs0, test.act0).sum(1)
+    correct = int((np.sign(learned) == np.sign(test.reward1.sum(1) - test.reward0.sum(1))).sum())
+    p = stats.binomtest(correct, 500, 0.5, alternative="greater").pvalue
+    assert correct / 500 > 0.85 and p < 1e-10, f"test accuracy {correct / 500:.3f}, p={p:.2g}, {metrics}"
+    # the next round trains on the 100 new labels (90 of them) and 90 old ones, and knows which are new
+    more = synthetic_pairs(100, rng)
+    y_more = np.concatenate([y, ScriptedTeacher().label(more, rng).y])
+    cat = lambda a, b: np.concatenate([a, b])
+    again = ensemble.train_round(cat(train.obs0, more.obs0), cat(train.act0, more.act0), cat(train.obs1, more.obs1),
+                                 cat(train.act1, more.act1), y_more, rng)
+    assert again["reward_new_labels"] == 100 and ensemble.labels_trained == 700
+    state = ensemble.optimizer_state()
+    fresh = RewardEnsemble(4, 1, config)
+    fresh.load_optimizer_state({k: v for k, v in state.items() if k != "labels_trained"})  # a checkpoint from before
+    assert fresh.labels_trained == 0 and all(o.param_groups[0]["fused"] for o in fresh.optimizers)
+    fresh.load_optimizer_state(state)
+    assert fresh.labels_trained == 700
+
+
+def test_bad_reward_model_settings_are_refused():
+    with pytest.raises(RatError, match="precision 'fp16'"):
+        RewardModelConfig(precision="fp16")
+    with pytest.raises(RatError, match="holdout must lie in"):
+        RewardModelConfig(holdout=0.6)
+
+
 def test_standardised_inputs_make_r_hat_blind_to_each_features_units_and_survive_a_checkpoint():
     rng = np.random.default_rng(0)
     pairs = synthetic_pairs(300, rng)

@@ -112,3 +112,49 @@ def test_buffer_state_round_trip():
     copy.load_state_dict(buf.state_dict())
     assert (copy.size, copy.cursor) == (buf.size, buf.cursor)
     np.testing.assert_array_equal(copy.reward, buf.reward)
+
+
+def test_a_bf16_update_keeps_float32_weights_and_heads_and_moves_every_network():
+    torch.manual_seed(0)
+    agent = SAC(6, 2, SACConfig(hidden=32, layers=2, batch_size=64, precision="bf16"))
+    batch = {"obs": torch.randn(64, 6), "action": torch.rand(64, 2) * 2 - 1, "reward": torch.randn(64),
+             "next_obs": torch.randn(64, 6), "terminated": torch.zeros(64)}
+    before = {k: v.clone() for k, v in agent.state_dict().items()}
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        q1, _ = agent.critic(batch["obs"], batch["action"])
+    assert q1.dtype == torch.float32  # the output layer runs in float32 even under autocast
+    assert torch.allclose(q1, agent.critic(batch["obs"], batch["action"])[0], atol=0.05)  # bf16 hidden layers: close
+    for _ in range(3):
+        metrics = agent.update(batch)
+    assert all(np.isfinite(v) for v in metrics.values())
+    after = agent.state_dict()
+    assert all(v.dtype == torch.float32 for v in after.values())
+    for prefix in ("actor.", "critic.", "critic_target.", "log_alpha"):
+        assert any(not torch.equal(before[k], after[k]) for k in after if k.startswith(prefix)), prefix
+    assert agent.describe()["sac"]["precision"] == "bf16"
+
+
+def test_fused_adam_resumes_fused_from_an_optimiser_state_written_without_it():
+    torch.manual_seed(0)
+    agent = SAC(6, 2, SACConfig(hidden=16, layers=1, batch_size=8))
+    assert agent.critic_opt.param_groups[0]["fused"]
+    batch = {"obs": torch.randn(8, 6), "action": torch.zeros(8, 2), "reward": torch.randn(8),
+             "next_obs": torch.randn(8, 6), "terminated": torch.zeros(8)}
+    plain = torch.optim.Adam(agent.critic.parameters(), lr=1e-4)  # as the agents before the fused kernel made it
+    agent.critic_opt = plain
+    agent.update(batch)
+    state = agent.optimizer_state()
+    assert state["critic"]["param_groups"][0]["fused"] is None
+    resumed = SAC(6, 2, SACConfig(hidden=16, layers=1, batch_size=8))
+    resumed.load_state_dict(agent.state_dict())
+    resumed.load_optimizer_state(state)
+    assert resumed.critic_opt.param_groups[0]["fused"] and resumed.updates == 1
+    resumed.update(batch)
+    assert all(s["step"].item() == 2 for s in resumed.critic_opt.state.values())
+
+
+def test_an_unknown_precision_is_refused():
+    from rat.errors import RatError
+
+    with pytest.raises(RatError, match="precision 'half'"):
+        SACConfig(precision="half")

@@ -8,8 +8,28 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from rat.errors import RatError
 
-def mlp(in_dim: int, out_dim: int, hidden: int = 256, layers: int = 3, activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
+
+PRECISIONS = ("fp32", "bf16")  #: arithmetic of the networks' hidden layers in an update (:func:`mixed_precision`)
+
+
+class MLP(nn.Sequential):
+    """Linear and activation layers in order, as :class:`nn.Sequential` (the same parameters and state-dict
+    keys); under :func:`mixed_precision` the hidden layers run in bfloat16 and the output layer in float32,
+    so Q-values, rewards and log-std keep float32's resolution (a bf16 Q of 100 is only good to ±0.4)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        *hidden, out = self
+        for layer in hidden:
+            x = layer(x)
+        if not torch.is_autocast_enabled(x.device.type):
+            return out(x)
+        with torch.autocast(x.device.type, enabled=False):
+            return out(x.float())
+
+
+def mlp(in_dim: int, out_dim: int, hidden: int = 256, layers: int = 3, activation: type[nn.Module] = nn.ReLU) -> MLP:
     """``layers`` hidden layers of width ``hidden``, then a linear output."""
     modules: list[nn.Module] = []
     width = in_dim
@@ -17,7 +37,33 @@ def mlp(in_dim: int, out_dim: int, hidden: int = 256, layers: int = 3, activatio
         modules += [nn.Linear(width, hidden), activation()]
         width = hidden
     modules.append(nn.Linear(width, out_dim))
-    return nn.Sequential(*modules)
+    return MLP(*modules)
+
+
+def mixed_precision(precision: str, device: str | torch.device = "cpu"):
+    """The context a loss is computed in: ``"bf16"`` autocasts matrix products to bfloat16 (master weights,
+    gradients and optimiser states stay float32; no loss scaling, bfloat16 has float32's range), ``"fp32"``
+    changes nothing. Use one context per loss whose networks were just stepped: autocast caches each
+    weight's bfloat16 copy for the whole context, so a second loss inside it would see the weights before
+    the step."""
+    if precision not in PRECISIONS:
+        raise RatError(f"unknown precision '{precision}'; use one of: {', '.join(PRECISIONS)}")
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
+def adam(params, lr: float) -> torch.optim.Adam:
+    """Adam with torch's fused kernel where the parameters' device has one (the same update, one kernel for
+    all parameters instead of several per tensor: ``benchmarks/speed.md``)."""
+    params = list(params)
+    fused = bool(params) and all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
+    return torch.optim.Adam(params, lr=lr, fused=fused or None)
+
+
+def keep_fused(optimizer: torch.optim.Optimizer) -> None:
+    """After ``load_state_dict``: the saved param groups' ``fused``/``foreach`` flags replace the optimiser's
+    own, so a checkpoint written without the fused kernel would resume without it; restore the optimiser's."""
+    for group in optimizer.param_groups:
+        group["fused"], group["foreach"] = optimizer.defaults.get("fused"), optimizer.defaults.get("foreach")
 
 
 class TanhGaussianActor(nn.Module):

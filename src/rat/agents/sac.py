@@ -13,7 +13,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from rat.agents.networks import TanhGaussianActor, TwinCritic
+from rat.agents.networks import PRECISIONS, TanhGaussianActor, TwinCritic, adam, keep_fused, mixed_precision
+from rat.errors import RatError
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,13 @@ class SACConfig:
     batch_size: int = 1024  #: transitions per update
     log_std_bounds: tuple[float, float] = (-5.0, 2.0)  #: actor log-std range
     learnable_temperature: bool = True  #: tune the temperature towards the target entropy
+    #: arithmetic of the hidden layers in an update: "fp32", or "bf16" (autocast; output layers, weights,
+    #: gradients and Adam stay float32; acting is float32 either way). What it costs and does: benchmarks/speed.md
+    precision: str = "fp32"
+
+    def __post_init__(self):
+        if self.precision not in PRECISIONS:
+            raise RatError(f"unknown SAC precision '{self.precision}'; use one of: {', '.join(PRECISIONS)}")
 
 
 # --- losses: pure functions of networks and a batch ----------------------------------------------
@@ -79,9 +87,9 @@ class SAC(nn.Module):
         self.target_entropy = -float(act_dim)
         self.to(device)
         self.device = device
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.lr)
-        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=config.alpha_lr)
+        self.actor_opt = adam(self.actor.parameters(), config.lr)
+        self.critic_opt = adam(self.critic.parameters(), config.lr)
+        self.alpha_opt = adam([self.log_alpha], config.alpha_lr)
         self.updates = 0
 
     @property
@@ -100,13 +108,14 @@ class SAC(nn.Module):
         cfg = self.config
         self.critic = TwinCritic(self.obs_dim, self.act_dim, cfg.hidden, cfg.layers).to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.lr)
+        self.critic_opt = adam(self.critic.parameters(), cfg.lr)
 
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """One SAC update on ``batch``; returns its metrics."""
         cfg = self.config
         metrics: dict[str, float] = {}
-        out = critic_loss(self.critic, self.critic_target, self.actor, self.alpha.detach(), batch, cfg.gamma)
+        with mixed_precision(cfg.precision, self.device):
+            out = critic_loss(self.critic, self.critic_target, self.actor, self.alpha.detach(), batch, cfg.gamma)
         self.critic_opt.zero_grad(set_to_none=True)
         out["critic_loss"].backward()
         self.critic_opt.step()
@@ -114,7 +123,8 @@ class SAC(nn.Module):
 
         if self.updates % cfg.actor_update_every == 0:
             self.critic.requires_grad_(False)  # the actor loss must not move the critic
-            out = actor_loss(self.actor, self.critic, self.alpha, batch["obs"])
+            with mixed_precision(cfg.precision, self.device):  # its own context: the critic was just stepped
+                out = actor_loss(self.actor, self.critic, self.alpha, batch["obs"])
             self.critic.requires_grad_(True)
             self.actor_opt.zero_grad(set_to_none=True)
             out["actor_loss"].backward()
@@ -129,8 +139,7 @@ class SAC(nn.Module):
                 metrics["alpha_loss"] = loss.item()
         if self.updates % cfg.target_update_every == 0:
             with torch.no_grad():
-                for p, tp in zip(self.critic.parameters(), self.critic_target.parameters()):
-                    tp.lerp_(p, cfg.tau)
+                torch._foreach_lerp_(list(self.critic_target.parameters()), list(self.critic.parameters()), cfg.tau)
         self.updates += 1
         metrics["alpha"] = self.alpha.item()
         return metrics
@@ -145,6 +154,8 @@ class SAC(nn.Module):
         self.actor_opt.load_state_dict(state["actor"])
         self.critic_opt.load_state_dict(state["critic"])
         self.alpha_opt.load_state_dict(state["alpha"])
+        for optimizer in (self.actor_opt, self.critic_opt, self.alpha_opt):
+            keep_fused(optimizer)
         self.updates = int(state["updates"])
 
     def describe(self) -> dict:

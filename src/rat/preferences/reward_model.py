@@ -10,6 +10,7 @@ trained with cross-entropy against the label y = P[σ¹ ≻ σ⁰] (see :mod:`ra
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from rat.agents.networks import mlp
+from rat.agents.networks import PRECISIONS, adam, keep_fused, mixed_precision, mlp
+from rat.errors import RatError
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,22 @@ class RewardModelConfig:
     #: standardise each input feature by its mean and spread over the labelled segments, refit every round
     #: (a departure from PEBBLE, whose members see raw ``s ‖ a``; see :meth:`RewardEnsemble.fit_inputs`)
     normalize_inputs: bool = False
+    #: share of the labels held out of training to stop a round (0: PEBBLE's rounds, every label every epoch until
+    #: ``stop_accuracy``). Above 0 a round trains on the labels new since the last round and as many old ones drawn
+    #: at random, checks each member's held-out loss every ``check_every`` updates, stops the member after
+    #: ``patience`` checks without a better one and keeps its best weights (a departure: benchmarks/speed.md)
+    holdout: float = 0.0
+    check_every: int = 25  #: updates of a member between held-out checks (``holdout`` > 0)
+    patience: int = 2  #: held-out checks without improvement before a member stops (``holdout`` > 0)
+    #: arithmetic of the hidden layers in training and relabelling: "fp32" or "bf16" (autocast; the output
+    #: layer, weights and Adam stay float32)
+    precision: str = "fp32"
+
+    def __post_init__(self):
+        if self.precision not in PRECISIONS:
+            raise RatError(f"unknown reward-model precision '{self.precision}'; use one of: {', '.join(PRECISIONS)}")
+        if not 0.0 <= self.holdout < 0.5:
+            raise RatError(f"reward-model holdout must lie in [0, 0.5), got {self.holdout}")
 
 
 def bradley_terry_loss(return0: torch.Tensor, return1: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -53,9 +71,10 @@ class RewardEnsemble(nn.Module):
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.nets = nn.ModuleList(
             mlp(obs_dim + act_dim, 1, config.hidden, config.layers, activation=nn.LeakyReLU) for _ in range(config.members))
-        self.optimizers = [torch.optim.Adam(n.parameters(), lr=config.lr) for n in self.nets]
+        self.optimizers = [adam(n.parameters(), config.lr) for n in self.nets]
         self.rounds = 0
         self.epochs_run = 0
+        self.labels_trained = 0  #: labels the last round held (those after it are new to the next)
         if config.normalize_inputs:  # buffers, so checkpoints keep them; absent otherwise, so older ones still load
             self.register_buffer("input_mean", torch.zeros(obs_dim + act_dim))
             self.register_buffer("input_std", torch.ones(obs_dim + act_dim))
@@ -109,7 +128,8 @@ class RewardEnsemble(nn.Module):
             return np.concatenate([self.r_hat(obs[i:i + chunk], action[i:i + chunk]) for i in range(0, len(obs), chunk)])
         o = torch.as_tensor(obs, dtype=torch.float32, device=self._device)
         a = torch.as_tensor(action, dtype=torch.float32, device=self._device)
-        return self.member_rewards(o, a).mean(0).cpu().numpy()
+        with mixed_precision(self.config.precision, self._device):
+            return self.member_rewards(o, a).mean(0).cpu().numpy()
 
     @torch.no_grad()
     def preference_probabilities(self, obs0, act0, obs1, act1) -> np.ndarray:
@@ -119,17 +139,29 @@ class RewardEnsemble(nn.Module):
         r1 = self.member_rewards(torch.as_tensor(obs1, device=d), torch.as_tensor(act1, device=d)).sum(-1)
         return torch.sigmoid(r1 - r0).cpu().numpy()
 
-    def train_round(self, obs0, act0, obs1, act1, y, rng: np.random.Generator) -> dict[str, float]:
-        """Train every member on all labels until accuracy > ``stop_accuracy`` or ``max_epochs``.
+    def _pair_returns(self, net: nn.Module, o0, a0, o1, a1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both segments' predicted returns under one member, in one pass (``[pairs]`` each)."""
+        with mixed_precision(self.config.precision, self._device):
+            r = self._reward(net, self._inputs(torch.cat([o0, o1]), torch.cat([a0, a1]))).sum(-1)
+        return r[:len(o0)], r[len(o0):]
 
-        Each member sees its own shuffles of the data (``rng``). Equal labels (0.5) count as
-        correct for accuracy, as in B-Pref. Returns the round's metrics.
+    def train_round(self, obs0, act0, obs1, act1, y, rng: np.random.Generator) -> dict[str, float]:
+        """Train every member on the labels, given in the order they were made (all of them so far).
+
+        With ``holdout`` 0 (PEBBLE): on all labels until training accuracy > ``stop_accuracy`` or ``max_epochs``;
+        otherwise stopped on held-out pairs (:meth:`_train_held_out`). Each member sees its own shuffles of the
+        data (``rng``). Equal labels (0.5) count as correct for accuracy, as in B-Pref. Returns the round's metrics.
         """
         cfg = self.config
         if cfg.normalize_inputs:  # every label so far, both segments
             self.fit_inputs([obs0, obs1], [act0, act1])
         data = [torch.as_tensor(np.asarray(a, np.float32), device=self._device) for a in (obs0, act0, obs1, act1, y)]
         n = len(data[-1])
+        if cfg.holdout > 0:
+            metrics = self._train_held_out(data, rng)
+            self.labels_trained = n
+            self.rounds += 1
+            return metrics
         updates = 0
         for epoch in range(cfg.max_epochs):
             correct, total_loss = np.zeros(cfg.members), 0.0
@@ -141,8 +173,7 @@ class RewardEnsemble(nn.Module):
                 for start in range(0, batches * cfg.batch_size, cfg.batch_size):
                     idx = order[start:start + cfg.batch_size]
                     o0, a0, o1, a1, yy = (d[idx] for d in data)
-                    r0 = self._reward(net, self._inputs(o0, a0)).sum(-1)
-                    r1 = self._reward(net, self._inputs(o1, a1)).sum(-1)
+                    r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
                     loss = bradley_terry_loss(r0, r1, yy)
                     opt.zero_grad(set_to_none=True)
                     loss.backward()
@@ -157,17 +188,87 @@ class RewardEnsemble(nn.Module):
             if accuracy > cfg.stop_accuracy or (cfg.max_updates is not None and updates >= cfg.max_updates):
                 break
         self.rounds += 1
+        self.labels_trained = n
         return {"reward_train_accuracy": float(accuracy), "reward_loss": total_loss / (seen * cfg.members),
                 "reward_epochs": float(epoch + 1), "reward_updates": float(updates)}
 
+    def held_out(self, n: int) -> np.ndarray:
+        """Which of ``n`` labels (in the order made) are held out: every k-th, k = round(1 / ``holdout``), so a
+        label keeps its side from round to round and no held-out pair is ever trained on."""
+        k = max(2, round(1 / self.config.holdout))
+        return np.arange(n) % k == k - 1
+
+    @torch.no_grad()
+    def _held_out_loss(self, net: nn.Module, data: list[torch.Tensor], idx: torch.Tensor) -> tuple[float, float]:
+        """A member's mean Bradley–Terry loss and accuracy on the held-out pairs ``idx``."""
+        loss, correct = 0.0, 0.0
+        for start in range(0, len(idx), 4 * self.config.batch_size):
+            o0, a0, o1, a1, yy = (d[idx[start:start + 4 * self.config.batch_size]] for d in data)
+            r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
+            loss += bradley_terry_loss(r0, r1, yy).item() * len(yy)
+            correct += (((r1 > r0).float() == yy) | (yy == 0.5)).sum().item()
+        return loss / len(idx), correct / len(idx)
+
+    def _train_held_out(self, data: list[torch.Tensor], rng: np.random.Generator) -> dict[str, float]:
+        """A round stopped on held-out pairs: each member trains on the labels new since the last round and as
+        many old ones (drawn afresh for each member), in shuffled passes, at most ``max_updates`` updates
+        (``max_epochs`` passes); every ``check_every`` updates its held-out loss is measured, and after
+        ``patience`` checks without a better one it stops and takes back the weights of its best check."""
+        cfg = self.config
+        n = len(data[-1])
+        held = self.held_out(n)
+        held_idx = torch.as_tensor(np.flatnonzero(held))
+        train = np.flatnonzero(~held)
+        if len(held_idx) == 0 or len(train) == 0:  # too few labels to hold any out: train on all, no stopping
+            held_idx, train = torch.as_tensor(np.arange(n)), np.arange(n)
+        new, old = train[train >= min(self.labels_trained, n)], train[train < min(self.labels_trained, n)]
+        cap = cfg.max_updates if cfg.max_updates is not None else cfg.max_epochs * -(-len(train) // cfg.batch_size)
+        totals = {"updates": 0, "loss": 0.0, "accuracy": 0.0, "train_accuracy": 0.0}
+        for net, opt in zip(self.nets, self.optimizers):
+            pool = np.concatenate([new, rng.choice(old, size=min(len(old), max(len(new), 1)), replace=False)])
+            best_loss, best_acc = self._held_out_loss(net, data, held_idx)
+            best_state, since_best, updates, correct, seen = copy.deepcopy(net.state_dict()), 0, 0, 0.0, 0
+            while updates < cap and since_best < cfg.patience:
+                order = torch.as_tensor(rng.permutation(pool))
+                for start in range(0, len(order), cfg.batch_size):
+                    idx = order[start:start + cfg.batch_size]
+                    o0, a0, o1, a1, yy = (d[idx] for d in data)
+                    r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
+                    loss = bradley_terry_loss(r0, r1, yy)
+                    opt.zero_grad(set_to_none=True)
+                    loss.backward()
+                    opt.step()
+                    correct += (((r1 > r0).float() == yy) | (yy == 0.5)).sum().item()
+                    seen, updates = seen + len(idx), updates + 1
+                    if updates % cfg.check_every == 0 or updates == cap:
+                        held_loss, held_acc = self._held_out_loss(net, data, held_idx)
+                        if held_loss < best_loss:
+                            best_loss, best_acc, best_state, since_best = held_loss, held_acc, copy.deepcopy(net.state_dict()), 0
+                        else:
+                            since_best += 1
+                        if updates == cap or since_best >= cfg.patience:
+                            break
+                self.epochs_run += 1
+            net.load_state_dict(best_state)
+            totals["updates"] += updates
+            totals["loss"] += best_loss
+            totals["accuracy"] += best_acc
+            totals["train_accuracy"] += correct / max(seen, 1)
+        m = cfg.members
+        return {"reward_train_accuracy": totals["train_accuracy"] / m, "reward_loss": totals["loss"] / m,
+                "reward_heldout_accuracy": totals["accuracy"] / m, "reward_updates": totals["updates"] / m,
+                "reward_new_labels": float(len(new) + np.count_nonzero(held[min(self.labels_trained, n):]))}
+
     def optimizer_state(self) -> dict:
         return {"optimizers": [o.state_dict() for o in self.optimizers], "rounds": self.rounds,
-                "epochs_run": self.epochs_run}
+                "epochs_run": self.epochs_run, "labels_trained": self.labels_trained}
 
     def load_optimizer_state(self, state: dict) -> None:
         for o, s in zip(self.optimizers, state["optimizers"]):
             o.load_state_dict(s)
+            keep_fused(o)
         self.rounds, self.epochs_run = int(state["rounds"]), int(state["epochs_run"])
+        self.labels_trained = int(state.get("labels_trained", 0))  # older checkpoints: every label counts as new
 
 
 def reward_agreement(learned: np.ndarray, true: np.ndarray, segment: int, pairs: int = 20_000) -> dict[str, float]:
