@@ -158,3 +158,23 @@ def test_an_unknown_precision_is_refused():
 
     with pytest.raises(RatError, match="precision 'half'"):
         SACConfig(precision="half")
+
+
+def test_the_speed_benchmark_times_an_earlier_commits_agent_beside_this_one_without_mixing_them(tmp_path):
+    import shutil
+    import sys
+    from pathlib import Path
+
+    import rat
+    from benchmark_scripts import load
+
+    speed = load("speed")
+    src = tmp_path / "src"
+    shutil.copytree(Path(rat.__file__).parent, src / "rat")  # stands in for an earlier commit's src/
+    modules = dict(sys.modules)
+    base = speed.import_base(str(src))
+    assert base["file"].startswith(str(src)) and base["SAC"] is not SAC
+    assert sys.modules["rat.agents.sac"] is modules["rat.agents.sac"] and str(src) not in sys.path
+    times = speed.interleaved({"base": speed.ours(base["SAC"], base["SACConfig"], 32),
+                               "this": speed.ours(SAC, SACConfig, 32, precision="bf16")}, updates=2, repeats=2)
+    assert set(times) == {"base", "this"} and all(t > 0 for t in times.values())
