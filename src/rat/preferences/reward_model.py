@@ -55,6 +55,11 @@ class RewardModelConfig:
             raise RatError(f"reward-model holdout must lie in [0, 0.5), got {self.holdout}")
 
 
+def _correct(r0: torch.Tensor, r1: torch.Tensor, y: torch.Tensor) -> int:
+    """Pairs whose predicted returns order them as the label does; equal labels (0.5) count as right (B-Pref)."""
+    return int((((r1 > r0).float() == y) | (y == 0.5)).sum())
+
+
 def bradley_terry_loss(return0: torch.Tensor, return1: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of ``sigmoid(return1 - return0)`` against ``y`` (= P[σ¹ ≻ σ⁰]), mean over pairs."""
     logits = torch.stack([return0, return1], dim=-1)
@@ -145,6 +150,17 @@ class RewardEnsemble(nn.Module):
             r = self._reward(net, self._inputs(torch.cat([o0, o1]), torch.cat([a0, a1]))).sum(-1)
         return r[:len(o0)], r[len(o0):]
 
+    def _step(self, net: nn.Module, opt: torch.optim.Optimizer, batch: list[torch.Tensor]) -> tuple[float, int]:
+        """One Bradley–Terry gradient step of a member on ``batch`` (o0, a0, o1, a1, y): its loss and the pairs it
+        ordered right."""
+        o0, a0, o1, a1, y = batch
+        r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
+        loss = bradley_terry_loss(r0, r1, y)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return loss.item(), _correct(r0, r1, y)
+
     def train_round(self, obs0, act0, obs1, act1, y, rng: np.random.Generator) -> dict[str, float]:
         """Train every member on the labels, given in the order they were made (all of them so far).
 
@@ -172,15 +188,9 @@ class RewardEnsemble(nn.Module):
                 order = torch.as_tensor(rng.permutation(n))
                 for start in range(0, batches * cfg.batch_size, cfg.batch_size):
                     idx = order[start:start + cfg.batch_size]
-                    o0, a0, o1, a1, yy = (d[idx] for d in data)
-                    r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
-                    loss = bradley_terry_loss(r0, r1, yy)
-                    opt.zero_grad(set_to_none=True)
-                    loss.backward()
-                    opt.step()
-                    total_loss += loss.item() * len(idx)
-                    predicted = (r1 > r0).float()
-                    correct[m] += ((predicted == yy) | (yy == 0.5)).sum().item()
+                    loss, right = self._step(net, opt, [d[idx] for d in data])
+                    total_loss += loss * len(idx)
+                    correct[m] += right
             self.epochs_run += 1
             updates += batches
             seen = min(n, batches * cfg.batch_size)
@@ -206,7 +216,7 @@ class RewardEnsemble(nn.Module):
             o0, a0, o1, a1, yy = (d[idx[start:start + 4 * self.config.batch_size]] for d in data)
             r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
             loss += bradley_terry_loss(r0, r1, yy).item() * len(yy)
-            correct += (((r1 > r0).float() == yy) | (yy == 0.5)).sum().item()
+            correct += _correct(r0, r1, yy)
         return loss / len(idx), correct / len(idx)
 
     def _train_held_out(self, data: list[torch.Tensor], rng: np.random.Generator) -> dict[str, float]:
@@ -232,13 +242,7 @@ class RewardEnsemble(nn.Module):
                 order = torch.as_tensor(rng.permutation(pool))
                 for start in range(0, len(order), cfg.batch_size):
                     idx = order[start:start + cfg.batch_size]
-                    o0, a0, o1, a1, yy = (d[idx] for d in data)
-                    r0, r1 = self._pair_returns(net, o0, a0, o1, a1)
-                    loss = bradley_terry_loss(r0, r1, yy)
-                    opt.zero_grad(set_to_none=True)
-                    loss.backward()
-                    opt.step()
-                    correct += (((r1 > r0).float() == yy) | (yy == 0.5)).sum().item()
+                    correct += self._step(net, opt, [d[idx] for d in data])[1]
                     seen, updates = seen + len(idx), updates + 1
                     if updates % cfg.check_every == 0 or updates == cap:
                         held_loss, held_acc = self._held_out_loss(net, data, held_idx)
