@@ -68,6 +68,7 @@ def ours(sac_cls, config_cls, batch: int, **settings):
     def run(k: int) -> None:
         for _ in range(k):
             agent.update(buffer.sample(batch, rng))
+    run.agent = agent
     return run
 
 
@@ -120,6 +121,52 @@ def sac_table(base: dict | None, batches: list[int], updates: int, repeats: int)
               f" | {ms['SB3 SAC'] / ms['ours, bf16']:.2f}× | {old / ms['ours, bf16']:.2f}× | {old / ms['ours, fp32']:.2f}× |",
               flush=True)
     print()
+
+
+def same_as_base(base: dict, steps=(1, 10, 100, 300)) -> None:
+    """The defaults (fp32 SAC, PEBBLE's rounds) against the starting commit's from equal seeds: the largest
+    weight difference after a number of updates, beside our own code with fused Adam against unfused Adam.
+    Where the two rows agree, fused Adam's summation order is all that differs."""
+    from rat.agents.sac import SAC, SACConfig
+    from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig
+
+    def unfused(run):
+        for optimizer in (run.agent.actor_opt, run.agent.critic_opt, run.agent.alpha_opt):
+            for group in optimizer.param_groups:
+                group["fused"] = None
+        return run
+
+    def gap(make_a, make_b, n: int) -> float:
+        agents = []
+        for make in (make_a, make_b):
+            run = make()
+            torch.manual_seed(1)  # the actor's samples: the same draws for both
+            run(n)
+            agents.append(run.agent)
+        return max(float((p - q).detach().abs().max()) for p, q in zip(*(a.parameters() for a in agents)))
+
+    print("### Same results as the starting commit (defaults, equal seeds)\n")
+    print("Largest difference of any SAC weight (actor, critics, temperature; batch 256):\n")
+    print("| compared | " + " | ".join(f"after {n}" for n in steps) + " |")
+    print("| --- |" + " ---: |" * len(steps))
+    rows = {"starting commit vs this code": (lambda: ours(base["SAC"], base["SACConfig"], 256),
+                                             lambda: ours(SAC, SACConfig, 256)),
+            "this code: unfused vs fused Adam": (lambda: unfused(ours(SAC, SACConfig, 256)),
+                                                 lambda: ours(SAC, SACConfig, 256))}
+    for name, (make_a, make_b) in rows.items():
+        print(f"| {name} | " + " | ".join(f"{gap(make_a, make_b, n):.1e}" for n in steps) + " |")
+    pairs, y = labelled_pairs(1000, seed=0)
+    ensembles = []
+    for ensemble_cls, config_cls in ((base["RewardEnsemble"], base["RewardModelConfig"]),
+                                     (RewardEnsemble, RewardModelConfig)):
+        torch.manual_seed(0)
+        ensemble = ensemble_cls(OBS, ACT, config_cls(max_epochs=5, max_updates=100, normalize_inputs=True))
+        ensemble.train_round(pairs.obs0, pairs.act0, pairs.obs1, pairs.act1, y, np.random.default_rng(0))
+        ensembles.append(ensemble)
+    old, new = (dict(e.nets.named_parameters()) for e in ensembles)
+    diff = max(float((old[k] - new[k]).detach().abs().max()) for k in old)
+    print(f"\nReward ensemble, one round on 1,000 labels (100 updates a member): largest weight difference "
+          f"{diff:.1e} (largest weight {max(float(v.detach().abs().max()) for v in new.values()):.2f}).\n")
 
 
 def labelled_pairs(n: int, seed: int):
@@ -190,11 +237,16 @@ def main() -> None:
     parser.add_argument("--labels", type=int, nargs="+", default=[1000, 3000, 9000])
     parser.add_argument("--sac-only", action="store_true")
     parser.add_argument("--reward-only", action="store_true")
+    parser.add_argument("--same-only", action="store_true", help="only the equal-seeds check against --base")
     args = parser.parse_args()
     torch.set_num_threads(1)
     base = import_base(args.base) if args.base else None
     import rat
     print(f"torch {torch.__version__}, one thread; this code: {rat.__file__}; base: {base['file'] if base else 'none'}\n")
+    if base:
+        same_as_base(base)
+    if args.same_only:
+        return
     if not args.reward_only:
         sac_table(base, args.batches, args.updates, args.repeats)
     if not args.sac_only:
