@@ -82,3 +82,23 @@ def point_dt_victim(directory):
     save_decision_transformer(directory, transformers.DecisionTransformerModel(config), np.zeros(4), np.ones(4),
                               target_return=-2.0, return_scale=10.0, context_length=4)
     return load_decision_transformer(directory)
+
+
+def point_sac_victim(hidden: int = 64, layers: int = 2, updates: int = 600) -> ModuleVictim:
+    """The go-to-goal controller cloned into this project's SAC actor (a victim robust training can fine-tune)."""
+    from rat.agents.networks import TanhGaussianActor
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    actor = TanhGaussianActor(4, 2, hidden, layers)
+    opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
+    for _ in range(updates):
+        g = rng.uniform(-0.5, 0.5, (256, 2))
+        obs = torch.as_tensor(np.concatenate([g + rng.uniform(-0.5, 0.5, (256, 2)), g], 1), dtype=torch.float32)
+        obs = obs + 0.1 * torch.empty_like(obs).uniform_(-1, 1)  # the ball's states too
+        loss = ((actor(obs) - 0.98 * GoTo()(obs)) ** 2).sum(-1).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    env = PointGoal()
+    return ModuleVictim(actor, env.observation_space, env.action_space, name="go-to-goal-sac", meta={"task": "point"})

@@ -66,3 +66,27 @@ def plot_training(metrics_csv: Path, path: Path, title: str, curve: str = "evalu
     fig.savefig(path, dpi=120, metadata={"Title": title.replace("\n", " ")})  # the words, for a reader of the file
     plt.close(fig)
     return path
+
+
+def plot_robust_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
+    """A robust agent's task return over training, clean and under its adversary, from a run's metrics.csv."""
+    if not Path(metrics_csv).exists():
+        return None
+    with open(metrics_csv, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("eval_clean_return")]
+    if not rows:
+        return None
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    for key, label in (("eval_clean_return", "clean"), ("eval_attacked_return", "under its adversary")):
+        points = [(float(r["step"]), float(r[key])) for r in rows if r.get(key)]
+        if points:
+            ax.plot(*zip(*points), marker="o", label=label)
+    ax.set_xlabel("environment steps (agent and adversary)")
+    ax.set_ylabel("episode task return")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120, metadata={"Title": title.replace("\n", " ")})
+    plt.close(fig)
+    return path

@@ -22,6 +22,7 @@ its shipped victims were made with.
 EVAL_ENV = 7  #: added to the run's seed for the environment of attack and intention evaluations
 FRESH_ENV = 1  #: added to the run's seed for a final evaluation on environments never trained on
 SELECTION_ENV = 11  #: added to the run's seed for scoring adversary snapshots with r̂
+ROBUST = 13  #: added to the run's seed for a robust agent's environment and generator (its episodes, batches)
 
 PERIODIC = 10**7  #: + step: first episode seed of the evaluation at that step
 FINAL = 2 * 10**7  #: first episode seed of final evaluations

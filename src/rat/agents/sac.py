@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -58,12 +59,22 @@ def critic_loss(critic: TwinCritic, critic_target: TwinCritic, actor: TanhGaussi
     return {"critic_loss": loss, "q_mean": q1.mean().detach(), "target_q_mean": target_q.mean()}
 
 
-def actor_loss(actor: TanhGaussianActor, critic: TwinCritic, alpha: torch.Tensor, obs: torch.Tensor) -> dict[str, torch.Tensor]:
-    """``E[alpha log pi(a|s) - min Q(s, a)]``, a ~ pi (the paper's eq. for J_pi)."""
+ActorTerm = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  #: (obs, sampled action) -> a loss per row, [B]
+
+
+def actor_loss(actor: TanhGaussianActor, critic: TwinCritic, alpha: torch.Tensor, obs: torch.Tensor,
+               extra: ActorTerm | None = None) -> dict[str, torch.Tensor]:
+    """``E[alpha log pi(a|s) - min Q(s, a) + extra(s, a)]``, a ~ pi (the paper's eq. for J_pi; ``extra`` is a
+    robust-training term such as RAT-WocaR's, evaluated at the same reparameterised sample)."""
     action, log_prob = actor.sample(obs)
     q1, q2 = critic(obs, action)
-    loss = (alpha.detach() * log_prob - torch.min(q1, q2)).mean()
-    return {"actor_loss": loss, "log_prob": log_prob.detach()}
+    per_row = alpha.detach() * log_prob - torch.min(q1, q2)
+    out = {"log_prob": log_prob.detach()}
+    if extra is not None:
+        term = extra(obs, action)
+        per_row = per_row + term
+        out["actor_extra"] = term.mean().detach()
+    return {"actor_loss": per_row.mean(), **out}
 
 
 def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_entropy: float) -> torch.Tensor:
@@ -110,8 +121,10 @@ class SAC(nn.Module):
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.critic_opt = adam(self.critic.parameters(), cfg.lr)
 
-    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
-        """One SAC update on ``batch``; returns its metrics."""
+    def update(self, batch: dict[str, torch.Tensor], actor: bool = True, actor_extra: ActorTerm | None = None
+               ) -> dict[str, float]:
+        """One SAC update on ``batch``; returns its metrics. ``actor=False`` steps the critic alone (a critic
+        warm-up for an actor loaded from elsewhere); ``actor_extra`` is added to the actor's loss per row."""
         cfg = self.config
         metrics: dict[str, float] = {}
         with mixed_precision(cfg.precision, self.device):
@@ -121,16 +134,18 @@ class SAC(nn.Module):
         self.critic_opt.step()
         metrics.update({k: v.item() for k, v in out.items()})
 
-        if self.updates % cfg.actor_update_every == 0:
+        if actor and self.updates % cfg.actor_update_every == 0:
             self.critic.requires_grad_(False)  # the actor loss must not move the critic
             with mixed_precision(cfg.precision, self.device):  # its own context: the critic was just stepped
-                out = actor_loss(self.actor, self.critic, self.alpha, batch["obs"])
+                out = actor_loss(self.actor, self.critic, self.alpha, batch["obs"], actor_extra)
             self.critic.requires_grad_(True)
             self.actor_opt.zero_grad(set_to_none=True)
             out["actor_loss"].backward()
             self.actor_opt.step()
             metrics["actor_loss"] = out["actor_loss"].item()
             metrics["entropy"] = float(-out["log_prob"].mean())
+            if "actor_extra" in out:
+                metrics["actor_extra"] = out["actor_extra"].item()
             if cfg.learnable_temperature:
                 loss = temperature_loss(self.log_alpha, out["log_prob"], self.target_entropy)
                 self.alpha_opt.zero_grad(set_to_none=True)

@@ -249,6 +249,13 @@ class PPOTrainer:
     def checkpoint_meta(self) -> dict:
         return {}
 
+    def rollout(self) -> int:
+        """One more rollout of ``n_steps`` and PPO's update on it, continuing the episode under way (a
+        robust-training loop steps the adversary this way between its agent's phases); returns the steps taken."""
+        before = self.step
+        self.model.learn(self.cfg.n_steps, reset_num_timesteps=False)
+        return self.step - before
+
     def learn(self, loop: TrainingLoop) -> int:
         """PPO until the loop's total; returns the PPO epochs of this call (passes over a rollout, as SB3 counts)."""
         from stable_baselines3.common.callbacks import BaseCallback

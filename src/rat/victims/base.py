@@ -128,6 +128,12 @@ class ModuleVictim(nn.Module):
 
     forward = act
 
+    def load_policy(self, state: dict[str, torch.Tensor]) -> None:
+        """Replace the policy's weights in place, frozen as before: everything holding this victim (an attack's
+        trainer, an adversary's MDP) acts on the new weights from now on (robust training swaps its agent in)."""
+        self.policy.load_state_dict(state)
+        freeze(self.policy)
+
     def initial_context(self, batch_size: int = 1) -> None:
         return None
 
