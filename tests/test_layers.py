@@ -1,4 +1,4 @@
-"""The import graph runs one way: cli -> experiments -> attacks / labelling -> preferences / victims -> envs / agents."""
+"""The import graph runs one way: cli -> experiments / robust -> attacks / labelling -> preferences / victims -> envs / agents."""
 
 import ast
 from pathlib import Path
@@ -8,7 +8,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "rat"
 # a package may import the packages of its own layer's right and every layer below it, never one above
 LAYERS = [
     {"cli"},
-    {"experiments"},
+    {"experiments", "robust"},
     {"attacks", "labelling"},
     {"preferences", "victims"},
     {"eval"},

@@ -12,8 +12,8 @@ and where it departs from the originals.
 """
 
 from rat.robust.adversaries import PhaseAdversary, PPOAdversary, RATAdversary
-from rat.robust.run import evaluate_robust, train_robust
+from rat.robust.run import evaluate_robust, prepare_robust, train_robust
 from rat.robust.trainer import ADVERSARY_OF, METHODS, RobustConfig, RobustTrainer
 
 __all__ = ["ADVERSARY_OF", "METHODS", "PPOAdversary", "PhaseAdversary", "RATAdversary", "RobustConfig",
-           "RobustTrainer", "evaluate_robust", "train_robust"]
+           "RobustTrainer", "evaluate_robust", "prepare_robust", "train_robust"]

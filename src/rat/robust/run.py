@@ -73,15 +73,11 @@ def adversary_for(config: RobustConfig, setup: AttackSetup, adversary_config: An
     return ppo_adversary(method, setup, env, reward, adversary_config), adversary_config.n_steps
 
 
-def train_robust(config: RobustConfig, victim: Victim, target: TargetBehaviour, make_env: Callable[[int], gym.Env],
-                 threat: ThreatModel, out: str | Path, adversary_config: Any = None,
-                 describe: dict[str, Any] | None = None, progress: bool = True) -> dict[str, Any]:
-    """Train a robust agent from ``victim`` in ``make_env``'s task, against ``target`` (resumable from ``out``).
-
-    ``make_env(seed)`` is the victim's own task, whose reward is the agent's; ``adversary_config`` is the
-    adversary's settings (a :class:`~rat.attacks.rat.RATConfig` for RAT-ATLA and RAT-WocaR, a
-    :class:`~rat.attacks.rl.PPOConfig` for ATLA and PA-ATLA). Returns the report (also ``out/report.json``).
-    """
+def prepare_robust(config: RobustConfig, victim: Victim, target: TargetBehaviour,
+                   make_env: Callable[[int], gym.Env], threat: ThreatModel, out: str | Path,
+                   adversary_config: Any = None, describe: dict[str, Any] | None = None,
+                   progress: bool = True) -> tuple[Run, RobustTrainer, TrainingLoop]:
+    """The run directory, the trainer and its training loop of :func:`train_robust`, not yet started (nor resumed)."""
     describe = dict(describe or {})
     env = make_env(config.seed + seeds.ROBUST)
     check_compatible(victim, env)
@@ -102,10 +98,25 @@ def train_robust(config: RobustConfig, victim: Victim, target: TargetBehaviour, 
     run = Run(out, {"robust": config, "adversary": adversary_config, **describe})
     adversary, unit = adversary_for(config, setup, adversary_config, run)
     trainer = RobustTrainer(config, setup, env, adversary, actor)
-    horizon = episode_length(env)
-    loop = TrainingLoop(run, trainer, trainer.planned_steps(horizon, unit), eval_every=config.eval_every,
+    loop = TrainingLoop(run, trainer, trainer.planned_steps(episode_length(env), unit), eval_every=config.eval_every,
                         checkpoint_every=config.checkpoint_every, checkpoint_at_boundary=True,
                         desc=f"{config.method} {target.name}", progress=progress)
+    return run, trainer, loop
+
+
+def train_robust(config: RobustConfig, victim: Victim, target: TargetBehaviour, make_env: Callable[[int], gym.Env],
+                 threat: ThreatModel, out: str | Path, adversary_config: Any = None,
+                 describe: dict[str, Any] | None = None, progress: bool = True) -> dict[str, Any]:
+    """Train a robust agent from ``victim`` in ``make_env``'s task, against ``target`` (resumable from ``out``).
+
+    ``make_env(seed)`` is the victim's own task, whose reward is the agent's; ``adversary_config`` is the
+    adversary's settings (a :class:`~rat.attacks.rat.RATConfig` for RAT-ATLA and RAT-WocaR, a
+    :class:`~rat.attacks.rl.PPOConfig` for ATLA and PA-ATLA). Returns the report (also ``out/report.json``).
+    """
+    describe = dict(describe or {})
+    run, trainer, loop = prepare_robust(config, victim, target, make_env, threat, out, adversary_config, describe,
+                                        progress)
+    adversary, horizon = trainer.adversary, episode_length(trainer.env)
     loop.resume()
     loop.run()
     while not trainer.finished:  # episodes ended early (a terminating task): the plan was short

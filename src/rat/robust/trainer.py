@@ -222,11 +222,11 @@ class RobustTrainer:
         elif self.phase == "agent":
             self.counters["agent_phases"] += 1
             self.victim.load_policy(self.agent.actor.state_dict())  # the adversary now trains against this agent
-        if phase == "agent" and self.agent_steps >= cfg.agent_steps:
-            phase = "done"
         phase_zero = self.counters["adversary_phases"] == 0
         if phase == "adversary" and (self.adversary is None or not (cfg.alternates or phase_zero)):
-            phase = "agent"
+            phase = "agent"  # no adversary phase here: the agent goes on (or is done)
+        if phase == "agent" and self.agent_steps >= cfg.agent_steps:
+            phase = "done"
         self.phase = phase
         if phase == "done":
             self.finished = True

@@ -1,0 +1,165 @@
+"""Robust training on the point environment: the phases alternate, the buffer holds what the agent saw, the
+worst-case term moves the actor alone, and a killed run resumes where it was."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+from point_env import BESIDE, PointGoal, point_sac_victim, point_victim
+from safetensors.torch import load_file
+from test_rat_training import small_config
+
+from rat.agents.sac import SACConfig
+from rat.attacks.rl import PPOConfig
+from rat.attacks.threat import ThreatModel
+from rat.errors import RatError
+from rat.robust import RobustConfig, RobustTrainer, prepare_robust, train_robust
+from rat.robust.terms import WorstCaseValue
+
+EPS = ThreatModel(0.1)
+
+
+def config(method="atla", **kw):
+    return RobustConfig(**dict(dict(method=method, agent_steps=400, phase_steps=200, adversary_phase_steps=200,
+                                    first_adversary_steps=400, critic_warmup=200, eval_every=10**6, eval_episodes=5,
+                                    final_eval_episodes=10, checkpoint_every=200,
+                                    sac=SACConfig(hidden=64, layers=2, batch_size=64, lr=1e-3)), **kw))
+
+
+def adversary_settings(method):
+    if method.startswith("rat"):
+        return small_config(400)
+    return PPOConfig(learning_rate=1e-3, batch_size=100, n_steps=200, n_epochs=2, hidden=32, layers=1)
+
+
+def trainer_for(cfg, out):
+    _, trainer, _ = prepare_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, out,
+                                   adversary_settings(cfg.method), describe={"task": "point"}, progress=False)
+    return trainer
+
+
+def flat(module) -> torch.Tensor:
+    return torch.nn.utils.parameters_to_vector(module.parameters()).detach().clone()
+
+
+def test_the_phases_alternate_and_each_moves_only_its_own_weights(tmp_path):
+    trainer = trainer_for(config("atla"), tmp_path / "run")
+    ppo = trainer.adversary.trainer.model.policy
+    phases, moved = [trainer.phase], {}
+    while not trainer.finished:
+        before = trainer.phase, flat(trainer.agent.actor), flat(trainer.agent.critic), flat(ppo), flat(trainer.victim.policy)
+        trainer.advance()
+        after = flat(trainer.agent.actor), flat(trainer.agent.critic), flat(ppo), flat(trainer.victim.policy)
+        if trainer.phase != phases[-1]:
+            phases.append(trainer.phase)
+            if trainer.phase == "adversary" and before[0] == "agent":  # the agent handed to the adversary's victim
+                assert torch.equal(after[3], after[0])
+            continue
+        changed = {name: not torch.equal(b, a) for name, b, a in zip(("actor", "critic", "adversary", "victim"),
+                                                                      before[1:], after)}
+        for name, did in changed.items():
+            moved.setdefault((before[0], name), set()).add(did)
+    assert phases == ["warm-up", "adversary", "agent", "adversary", "agent", "adversary", "done"]
+    assert trainer.counters["adversary_phases"] == 3 and trainer.counters["agent_phases"] == 2
+    assert trainer.agent_steps == 400 and trainer.warmup_steps == 200
+    # within a phase: the warm-up trains the critic alone, the agent's phase the agent, the adversary's the adversary
+    assert moved[("warm-up", "actor")] == {False} and True in moved[("warm-up", "critic")]
+    assert moved[("agent", "adversary")] == {False} and moved[("agent", "victim")] == {False}
+    assert True in moved[("agent", "actor")] and True in moved[("agent", "critic")]
+    assert moved[("adversary", "actor")] == {False} and moved[("adversary", "critic")] == {False}
+    assert moved[("adversary", "victim")] == {False} and moved[("adversary", "adversary")] == {True}
+
+
+def test_the_agents_buffer_holds_the_perturbed_observations_it_was_shown(tmp_path):
+    trainer = trainer_for(config("atla"), tmp_path / "run")
+    while trainer.phase != "agent":
+        trainer.advance()
+    wrapper, checked = trainer.env, 0
+    while trainer.phase == "agent":
+        seen = trainer.obs
+        trainer.advance()
+        if seen is None:  # the episode's first step: its observation came from the reset inside advance()
+            continue
+        i = trainer.buffer.last_index
+        np.testing.assert_allclose(trainer.buffer.obs[i], seen, rtol=0, atol=1e-6)
+        true_next = wrapper._last_true
+        shown_next = trainer.buffer.next_obs[i]
+        assert np.abs(shown_next - true_next).max() <= 0.1 + 1e-6  # inside the ε-ball of the true next state
+        assert np.abs(shown_next - true_next).max() > 1e-4  # and perturbed
+        if trainer.obs is not None:  # s̃ₜ₊₁ is the next step's s̃ₜ: the same draw, not a fresh one
+            np.testing.assert_allclose(shown_next, trainer.obs, rtol=0, atol=1e-6)
+        checked += 1
+    assert checked > 150
+
+
+def test_the_worst_case_term_moves_the_actors_gradient_and_not_the_critics():
+    torch.manual_seed(0)
+    from rat.agents.sac import SAC
+
+    agent = SAC(4, 2, SACConfig(hidden=32, layers=2, batch_size=32))
+    term = WorstCaseValue(4, 2, EPS, hidden=32, layers=2)
+    term.kappa = 0.5
+    batch = {"obs": torch.randn(32, 4), "action": torch.rand(32, 2) * 2 - 1, "reward": torch.randn(32),
+             "next_obs": torch.randn(32, 4), "terminated": torch.zeros(32)}
+    grads = {}
+    for name, extra in (("without", None), ("with", term)):
+        state = {k: v.clone() for k, v in agent.state_dict().items()}  # the same start for both
+        optimizers = copy.deepcopy(agent.optimizer_state())
+        rng = torch.get_rng_state()
+        agent.update(batch, actor_extra=extra)
+        grads[name] = (flat(agent.actor), flat(agent.critic))
+        q_w = flat(term.q)
+        agent.load_state_dict(state)
+        agent.load_optimizer_state(optimizers)
+        torch.set_rng_state(rng)
+    assert torch.equal(grads["with"][1], grads["without"][1])  # the critic's step is the same
+    assert not torch.equal(grads["with"][0], grads["without"][0])  # the actor's is not
+    assert torch.equal(q_w, flat(term.q))  # and Q_w is moved only by its own Bellman update
+
+
+class Interrupt(Exception):
+    pass
+
+
+def test_a_run_killed_mid_phase_resumes_where_it_was(tmp_path, monkeypatch):
+    cfg = config("rat-wocar", wocar_critic="worst-case", checkpoint_every=100)
+    whole = train_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "whole",
+                         describe={"task": "point"}, progress=False)
+    real, calls = RobustTrainer._update, {"n": 0}
+
+    def dies_midway(self, actor):
+        calls["n"] += 1
+        if calls["n"] == 430:  # the agent's second phase, between its checkpoints
+            raise Interrupt
+        return real(self, actor)
+
+    monkeypatch.setattr(RobustTrainer, "_update", dies_midway)
+    with pytest.raises(Interrupt):
+        train_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "killed",
+                     describe={"task": "point"}, progress=False)
+    assert (tmp_path / "killed" / "checkpoint.json").exists() and not (tmp_path / "killed" / "report.json").exists()
+    monkeypatch.setattr(RobustTrainer, "_update", real)
+    resumed = train_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "killed",
+                           describe={"task": "point"}, progress=False)
+    a, b = load_file(tmp_path / "whole" / "victim.safetensors"), load_file(tmp_path / "killed" / "victim.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    for key in ("agent_steps", "agent_updates", "agent_phases", "clean_return"):
+        assert resumed[key] == whole[key], key
+
+
+@pytest.mark.parametrize("kw, message", [
+    (dict(method="atla-plus"), "unknown robust-training method 'atla-plus'"),
+    (dict(init="warm"), "init must be one of finetune, scratch"),
+    (dict(agent_steps=-5), "agent-steps must be positive"),
+    (dict(first_adversary_steps=0), "needs an adversary trained first"),
+])
+def test_bad_settings_are_named(kw, message):
+    with pytest.raises(RatError, match=message):
+        config(**kw)
+
+
+def test_a_victim_that_is_not_a_sac_actor_cannot_be_fine_tuned(tmp_path):
+    with pytest.raises(RatError, match="pass --init scratch"):
+        prepare_robust(config("atla"), point_victim(), BESIDE, PointGoal, EPS, tmp_path / "run",
+                       adversary_settings("atla"), progress=False)
