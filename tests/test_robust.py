@@ -163,3 +163,41 @@ def test_a_victim_that_is_not_a_sac_actor_cannot_be_fine_tuned(tmp_path):
     with pytest.raises(RatError, match="pass --init scratch"):
         prepare_robust(config("atla"), point_victim(), BESIDE, PointGoal, EPS, tmp_path / "run",
                        adversary_settings("atla"), progress=False)
+
+
+def test_the_robust_agent_loads_as_a_victim(tmp_path):
+    from rat.victims import load_victim
+
+    cfg = config("rat-wocar", wocar_critic="worst-case", agent_steps=200, eval_every=200)
+    report = train_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "run",
+                          describe={"task": "point"}, progress=False)
+    agent = load_victim(str(tmp_path / "run"))
+    assert agent.meta["method"] == "robust-rat-wocar" and agent.meta["robust"]["init"] == "finetune"
+    assert report["agent_steps"] == 200 and (tmp_path / "run" / "training.png").stat().st_size > 0
+    obs = torch.randn(16, 4)
+    saved = load_file(tmp_path / "run" / "victim.safetensors")
+    assert not torch.equal(agent.act(obs), point_sac_victim(updates=200).act(obs))  # fine-tuned, not the start
+    assert saved  # weights, in safetensors
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--target", "opposite"], "needs a target of the victim's own environment"),
+    (["--set", "agent_steps=-1"], "agent-steps must be positive"),
+    (["--victim", "zoo:nowhere-v3@sac"], "no zoo victim 'nowhere-v3@sac'"),
+    (["--method", "rat-wocar", "--wocar-critic", "worst-case", "--adversary-set", "adversary_lr=1e-3"],
+     "trains no adversary; drop --adversary-set"),
+])
+def test_bad_robust_commands_end_in_one_line_and_exit_2(tmp_path, capsys, args, message):
+    from rat.cli import main
+
+    assert main(["robust", "train", *args, "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "run").exists()  # nothing written
+
+
+def test_robust_eval_of_an_unfinished_run_says_how_to_finish_it(tmp_path, capsys):
+    from rat.cli import main
+
+    assert main(["robust", "eval", str(tmp_path)]) == 2
+    assert "finish it with the same `rat robust train ... --out` command" in capsys.readouterr().err

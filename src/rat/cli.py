@@ -631,6 +631,103 @@ def attack_eval(run, episodes, seed, video, record, refine_steps, refine_loss, r
 
 
 @cli.group()
+def robust() -> None:
+    """Train agents that resist targeted attacks (RAT-ATLA, RAT-WocaR, ATLA, PA-ATLA) and attack them afresh."""
+
+
+ROBUST = "rat.robust.trainer:RobustConfig"
+
+
+@robust.command("train")
+@click.option("--method", type=click.Choice(["rat-atla", "rat-wocar", "atla", "pa-atla"]), default="rat-atla",
+              show_default=True, help="the defence (docs/robust.md)")
+@click.option("--victim", "victim_spec", default="zoo:faucet-close-v3@sac", show_default=True,
+              help="the agent to start from: a SAC victim (zoo:<task>@sac, a victim checkpoint)")
+@click.option("--task", default=None, help="the victim's own task, for a victim that does not record one")
+@click.option("--target", default="reach", show_default=True,
+              help="the behaviour the adversary is trained towards (a target of the victim's own environment)")
+@config_option(THREAT, "epsilon", type=float, help="budget, raw observation units")
+@config_option(THREAT, "norm", type=click.Choice(["linf", "l2", "l1", "l1-rescale"]))
+@config_option(ROBUST, "init", type=click.Choice(["finetune", "scratch"]))
+@config_option(ROBUST, "wocar_critic", type=click.Choice(["intention", "worst-case"]))
+@config_option(ROBUST, "agent_steps", type=int)
+@click.option("--budget", type=int, default=None, help="RAT-ATLA, RAT-WocaR: the adversary's preference labels [3000]")
+@click.option("--preset", type=click.Choice(["cpu", "smoke"]), default="cpu", show_default=True,
+              help="cpu: the defaults (docs/robust.md); smoke: every phase in minutes, not results")
+@click.option("--seed", type=int, default=0, show_default=True)
+@set_option("the robust trainer (rat.robust.RobustConfig)", "phase_steps=4000")
+@click.option("--adversary-set", "adversary_assignments", multiple=True, metavar="NAME=VALUE",
+              help="any setting of the adversary (RATConfig or PPOConfig), e.g. --adversary-set adversary_lr=3e-4")
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="run directory [runs/robust-<method>-<victim>-<target>-<seed>]")
+@click.pass_context
+def robust_train(ctx, method, victim_spec, task, target, epsilon, norm, init, wocar_critic, agent_steps, budget,
+                 preset, seed, assignments, adversary_assignments, out) -> None:
+    """Train a robust agent from a victim; re-running with the same --out resumes it."""
+    from rat.attacks import ThreatModel
+    from rat.configs import parse_assignment, with_values
+    from rat.envs import get_target, make_task
+    from rat.robust.run import adversary_settings, robust_task, train_robust
+    from rat.robust.trainer import RobustConfig, robust_preset
+    from rat.runs import check_run_dir
+
+    target_behaviour = get_target(target)
+    victim, task = robust_task(victim_spec, target_behaviour, task)
+    config = config_from_options(ctx, RobustConfig, robust_preset(preset, method=method, seed=seed), assignments)
+    adversary_config = adversary_settings(config, preset, target, budget)
+    if adversary_assignments:
+        if adversary_config is None:
+            raise RatError(f"{method} with wocar-critic worst-case trains no adversary; drop --adversary-set")
+        adversary_config = with_values(adversary_config, dict(parse_assignment(type(adversary_config), a)
+                                                              for a in adversary_assignments))
+    resolve_device(config.device)
+    name = victim_spec.replace(":", "-").replace("/", "_").replace("@", "-")
+    out = check_run_dir(out or Path("runs") / f"robust-{method}-{name}-{target}-{seed}")
+    report = train_robust(config, victim, target_behaviour, lambda s: make_task(task, seed=s),
+                          ThreatModel(epsilon, norm), out, adversary_config,
+                          describe={"victim": victim_spec, "task": task})
+    click.echo(f"{method}: clean return {report['clean_return']:.1f} ± {report['clean_return_std']:.1f}, task success "
+               f"{100 * report['clean_task_success']:.1f}% over {report['episodes']} episodes "
+               f"({report['train_minutes']:.1f} min)")
+    if "own_adversary_return" in report:
+        click.echo(f"under its own final adversary: return {report['own_adversary_return']:.1f}, the target reached "
+                   f"in {100 * report['own_adversary_target_success']:.1f}%")
+    click.echo(f"the robust agent, a victim for `rat victim eval` and `rat attack train --victim`: {out}")
+    click.echo(f"plot of clean and attacked return over training: {out / 'training.png'}")
+    click.echo(f"report: {out / 'report.json'}")
+
+
+@robust.command("eval")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--attacks", default="rat,pa-ad,sa-rl,random", show_default=True,
+              help="comma-separated attacks, each trained afresh against the robust agent")
+@click.option("--preset", type=click.Choice(["cpu", "paper", "smoke"]), default="cpu", show_default=True,
+              help="the attacks' preset (as `rat attack train --preset`)")
+@click.option("--budget", type=int, default=None, help="RAT's preference labels [the preset's]")
+@click.option("--episodes", type=int, default=100, show_default=True, help="the paper's table 3 uses 100")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--json", "as_json", is_flag=True)
+def robust_eval(run, attacks, preset, budget, episodes, seed, as_json) -> None:
+    """Attack the robust agent of RUN afresh with each attack (resumable) and tabulate task return and target success."""
+    from rat.attacks import get_attack
+    from rat.robust.run import evaluate_robust
+
+    names = [a.strip() for a in attacks.split(",") if a.strip()]
+    for name in names:
+        get_attack(name)  # an unknown name is said before anything trains
+    table = evaluate_robust(run, names, preset, budget, episodes, seed)
+    if as_json:
+        click.echo(json.dumps(table, indent=1))
+        return
+    click.echo(f"{table['method']} against {table['target']}: clean return {table['clean_return']:.1f} "
+               f"± {table['clean_return_std']:.1f}")
+    for name, row in table["attacks"].items():
+        click.echo(f"  {name:8s} ({row['reward']}): return {row['return']:.1f} ± {row['return_std']:.1f}, target "
+                   f"reached {100 * row['target_success']:.1f}% of {row['episodes']} episodes")
+    click.echo(f"table: {Path(run) / 'eval' / 'table.json'}")
+
+
+@cli.group()
 def bench() -> None:
     """Grids of experiments: the paper's tables."""
 

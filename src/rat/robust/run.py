@@ -73,6 +73,32 @@ def adversary_for(config: RobustConfig, setup: AttackSetup, adversary_config: An
     return ppo_adversary(method, setup, env, reward, adversary_config), adversary_config.n_steps
 
 
+def robust_task(victim_spec: str, target: TargetBehaviour, task: str | None = None) -> tuple[Victim, str]:
+    """The victim of ``victim_spec`` and its task, checked: the agent trains in that task and the adversary seeks
+    ``target`` in the same environment."""
+    from rat.experiments.runner import load_victim_for
+
+    victim, task, env_task = load_victim_for(victim_spec, target, task)
+    if env_task != task:
+        raise RatError(f"target '{target.name}' is sought in {env_task}'s environment, but the agent trains in "
+                       f"{task}'s; robust training needs a target of the victim's own environment (e.g. reach)")
+    return victim, task
+
+
+def adversary_settings(config: RobustConfig, preset: str, target: str, budget: int | None = None):
+    """The adversary's settings for ``config.method`` under an attack preset: RAT's run long enough for phase 0
+    and every later adversary phase (its label schedule spans them all); SA-RL's or PA-AD's PPO."""
+    from rat.experiments.runner import attack_config
+
+    method = config.adversary_method
+    if method is None:
+        return None
+    rounds = -(-config.agent_steps // config.phase_steps)
+    steps = config.first_adversary_steps + rounds * config.adversary_phase_steps * config.alternates
+    extra = {"seed": config.seed} if method == "rat" else {}
+    return attack_config(method, preset, budget if method == "rat" else None, steps, target, **extra)
+
+
 def prepare_robust(config: RobustConfig, victim: Victim, target: TargetBehaviour,
                    make_env: Callable[[int], gym.Env], threat: ThreatModel, out: str | Path,
                    adversary_config: Any = None, describe: dict[str, Any] | None = None,

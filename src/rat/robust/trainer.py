@@ -118,6 +118,19 @@ class RobustConfig:
         return ADVERSARY_OF[self.method] if self.needs_adversary else None
 
 
+#: ``--preset smoke``: every phase once or twice, in minutes (a check that a task runs, not a result)
+SMOKE = dict(agent_steps=2_000, phase_steps=1_000, adversary_phase_steps=1_000, first_adversary_steps=2_000,
+             critic_warmup=1_000, random_steps=1_000, eval_every=2_000, eval_episodes=2, final_eval_episodes=5,
+             checkpoint_every=1_000)
+
+
+def robust_preset(preset: str, **overrides) -> RobustConfig:
+    """:class:`RobustConfig` under a named preset: ``cpu`` (its defaults) or ``smoke``, with field overrides."""
+    if preset not in ("cpu", "smoke"):
+        raise RatError(f"unknown robust-training preset '{preset}'; use cpu or smoke")
+    return RobustConfig(**(SMOKE if preset == "smoke" else {}) | overrides)
+
+
 class TaskReward(gym.Wrapper):
     """Records the environment's own reward in ``info["task_reward"]`` (ATLA's adversary is paid −r)."""
 
