@@ -37,6 +37,14 @@ def plot_reward_quality(episode: dict[str, np.ndarray], r_hat: np.ndarray, path:
     return path
 
 
+def _logged_rows(metrics_csv: Path, key: str) -> list[dict[str, str]]:
+    """The rows of a run's metrics.csv that logged ``key`` (none where nothing was logged)."""
+    if not Path(metrics_csv).exists():
+        return []
+    with open(metrics_csv, newline="") as f:
+        return [r for r in csv.DictReader(f) if r.get(key)]
+
+
 def plot_training(metrics_csv: Path, path: Path, title: str, curve: str = "evaluations during training",
                   final: tuple[float, float, str] | None = None) -> Path | None:
     """Evaluation success over environment steps, from a run's metrics.csv.
@@ -44,10 +52,7 @@ def plot_training(metrics_csv: Path, path: Path, title: str, curve: str = "evalu
     ``final`` = (step, success rate, label) marks the result as deployed at the end of a run, where that is not
     what the evaluations during training measured (a RAT attack refines Δ at every observation; they do not).
     """
-    if not Path(metrics_csv).exists():  # nothing was logged
-        return None
-    with open(metrics_csv, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("eval_success_rate")]
+    rows = _logged_rows(metrics_csv, "eval_success_rate")
     if not rows:
         return None
     plt = pyplot()
@@ -70,10 +75,7 @@ def plot_training(metrics_csv: Path, path: Path, title: str, curve: str = "evalu
 
 def plot_robust_training(metrics_csv: Path, path: Path, title: str) -> Path | None:
     """A robust agent's task return over training, clean and under its adversary, from a run's metrics.csv."""
-    if not Path(metrics_csv).exists():
-        return None
-    with open(metrics_csv, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("eval_clean_return")]
+    rows = _logged_rows(metrics_csv, "eval_clean_return")
     if not rows:
         return None
     plt = pyplot()
