@@ -201,3 +201,37 @@ def test_robust_eval_of_an_unfinished_run_says_how_to_finish_it(tmp_path, capsys
 
     assert main(["robust", "eval", str(tmp_path)]) == 2
     assert "finish it with the same `rat robust train ... --out` command" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_rat_atla_agent_beats_the_undefended_victim_under_a_fixed_attack(tmp_path):
+    """The fixed attack: phase 0's RAT adversary, trained against the undefended victim and frozen there. The
+    robust agent trains against that adversary as it goes on learning, so it has never seen this copy."""
+    from scipy import stats
+
+    from rat.attacks.evaluation import evaluate_attack
+
+    cfg = config("rat-atla", agent_steps=4000, phase_steps=400, adversary_phase_steps=400, first_adversary_steps=2000,
+                 critic_warmup=2000, warmup_updates=4,
+                 sac=SACConfig(hidden=64, layers=2, batch_size=128, lr=3e-4, init_temperature=0.01,
+                               learnable_temperature=False))
+    victim = point_sac_victim()
+    _, trainer, _ = prepare_robust(cfg, victim, BESIDE, PointGoal, EPS, tmp_path / "run", small_config(6000),
+                                   describe={"task": "point"}, progress=False)
+    fixed = None
+    while not trainer.finished:
+        trainer.advance()
+        if fixed is None and trainer.phase == "agent":
+            fixed = copy.deepcopy(trainer.adversary.trainer.adversary).eval()
+    assert trainer.counters["agent_updates"] >= 3500 and trainer.counters["adversary_phases"] == 11
+
+    @torch.no_grad()
+    def attack(obs):
+        return fixed(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)).squeeze(0).double().numpy()
+
+    undefended, robust = (evaluate_attack(agent, attack, PointGoal(7), BESIDE, EPS, 50, seed=2 * 10**7).result
+                          for agent in (victim, trainer.current_agent()))
+    p = stats.ttest_ind_from_stats(robust.mean_return, robust.std_return, 50, undefended.mean_return,
+                                   undefended.std_return, 50, equal_var=False, alternative="greater").pvalue
+    assert robust.mean_return >= undefended.mean_return + 1.0 and p < 0.01, \
+        f"robust {robust.mean_return:.2f}, undefended {undefended.mean_return:.2f}, p={p:.2g}"

@@ -665,27 +665,18 @@ def robust_train(ctx, method, victim_spec, task, target, epsilon, norm, init, wo
                  preset, seed, assignments, adversary_assignments, out) -> None:
     """Train a robust agent from a victim; re-running with the same --out resumes it."""
     from rat.attacks import ThreatModel
-    from rat.configs import parse_assignment, with_values
-    from rat.envs import get_target, make_task
-    from rat.robust.run import adversary_settings, robust_task, train_robust
+    from rat.envs import get_target
+    from rat.robust.run import robust_task, train_robust_from
     from rat.robust.trainer import RobustConfig, robust_preset
     from rat.runs import check_run_dir
 
-    target_behaviour = get_target(target)
-    victim, task = robust_task(victim_spec, target_behaviour, task)
+    robust_task(victim_spec, get_target(target), task)  # a bad victim or target is said before anything else
     config = config_from_options(ctx, RobustConfig, robust_preset(preset, method=method, seed=seed), assignments)
-    adversary_config = adversary_settings(config, preset, target, budget)
-    if adversary_assignments:
-        if adversary_config is None:
-            raise RatError(f"{method} with wocar-critic worst-case trains no adversary; drop --adversary-set")
-        adversary_config = with_values(adversary_config, dict(parse_assignment(type(adversary_config), a)
-                                                              for a in adversary_assignments))
     resolve_device(config.device)
     name = victim_spec.replace(":", "-").replace("/", "_").replace("@", "-")
     out = check_run_dir(out or Path("runs") / f"robust-{method}-{name}-{target}-{seed}")
-    report = train_robust(config, victim, target_behaviour, lambda s: make_task(task, seed=s),
-                          ThreatModel(epsilon, norm), out, adversary_config,
-                          describe={"victim": victim_spec, "task": task})
+    report = train_robust_from(config, victim_spec, target, out, preset, budget, ThreatModel(epsilon, norm), task,
+                               adversary_assignments)
     click.echo(f"{method}: clean return {report['clean_return']:.1f} ± {report['clean_return_std']:.1f}, task success "
                f"{100 * report['clean_task_success']:.1f}% over {report['episodes']} episodes "
                f"({report['train_minutes']:.1f} min)")
@@ -791,6 +782,30 @@ def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ra
         click.echo(f"  failed: {row['task']}/{row['scenario']}/{row['method']}/seed{row['seed']}: {row['error']}", err=True)
     if result["failed"]:
         raise RatError(f"{len(result['failed'])} cells failed (tracebacks in their error.txt); fix and re-run to resume")
+
+
+@bench.command("table3")
+@click.option("--tasks", default="faucet-close-v3", show_default=True, callback=_csv(str),
+              help="tasks with a zoo SAC victim (zoo:<task>@sac), comma-separated; the paper's: door-lock-v3, "
+                   "door-unlock-v3, faucet-open-v3, faucet-close-v3")
+@click.option("--rows", default="undefended,rat-atla,rat-wocar,atla,pa-atla", show_default=True, callback=_csv(str),
+              help="the defences (each a robust agent trained from the zoo victim), and the victim itself")
+@click.option("--attacks", default="rat,pa-ad,sa-rl,random", show_default=True, callback=_csv(str),
+              help="each trained afresh against every row's agent")
+@click.option("--seeds", default="0", show_default=True, callback=_csv(int))
+@click.option("--target", default="reach", show_default=True, help="the behaviour of RAT's attacks and adversaries")
+@click.option("--preset", type=click.Choice(["cpu", "smoke"]), default="cpu", show_default=True,
+              help="the robust agents' and the attacks' preset")
+@click.option("--episodes", type=int, default=100, show_default=True, help="attacked episodes per cell (the paper's 100)")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table3"), show_default=True)
+@click.option("--report-only", is_flag=True, help="run nothing: write table3.md from the finished rows in --out")
+def bench_table3(tasks, rows, attacks, seeds, target, preset, episodes, out, report_only) -> None:
+    """Train each row's robust agent, attack it with each attack, and write table 3 (finished parts are skipped)."""
+    from rat.experiments.table3 import run_table3, write_table3
+
+    done = write_table3(out) if report_only else run_table3(tasks, rows, attacks, seeds, out, preset, target,
+                                                              episodes=episodes, echo=click.echo)
+    click.echo(f"{len(done)} finished rows; {out / 'table3.md'}, {out / 'results.json'}")
 
 
 # --- entry point -----------------------------------------------------------------------------------

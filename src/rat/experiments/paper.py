@@ -28,3 +28,24 @@ PAPER_TABLE1: dict[tuple[str, str], dict[str, tuple[float, float]]] = {
 PAPER_OPPOSITE_LABELS = {"window-close-v3": 1000, "drawer-close-v3": 3000, "faucet-open-v3": 5000,
                          "faucet-close-v3": 5000, "window-open-v3": 5000, "drawer-open-v3": 7000,
                          "door-lock-v3": 7000, "door-unlock-v3": 7000}
+
+#: The paper's table 3: average episode task reward (mean, std over 100 episodes) of each robust agent under each
+#: attack, keyed by task then the robust method (the paper's ATLA-PPO and PA-ATLA are PPO agents; ours are SAC).
+PAPER_TABLE3: dict[str, dict[str, dict[str, tuple[float, float]]]] = {
+    "door-lock-v3": {"rat-atla": {"rat": (874, 444), "pa-ad": (628, 486), "sa-rl": (503, 120)},
+                     "rat-wocar": {"rat": (774, 241), "pa-ad": (527, 512), "sa-rl": (520, 236)},
+                     "pa-atla": {"rat": (491, 133), "pa-ad": (483, 15), "sa-rl": (517, 129)},
+                     "atla": {"rat": (469, 11), "pa-ad": (629, 455), "sa-rl": (583, 173)}},
+    "door-unlock-v3": {"rat-atla": {"rat": (477, 203), "pa-ad": (745, 75), "sa-rl": (623, 60)},
+                       "rat-wocar": {"rat": (525, 78), "pa-ad": (647, 502), "sa-rl": (506, 39)},
+                       "pa-atla": {"rat": (398, 12), "pa-ad": (381, 11), "sa-rl": (398, 79)},
+                       "atla": {"rat": (393, 36), "pa-ad": (377, 8), "sa-rl": (385, 26)}},
+    "faucet-open-v3": {"rat-atla": {"rat": (442, 167), "pa-ad": (451, 96), "sa-rl": (504, 55)},
+                       "rat-wocar": {"rat": (1223, 102), "pa-ad": (1824, 413), "sa-rl": (1575, 389)},
+                       "pa-atla": {"rat": (438, 53), "pa-ad": (588, 222), "sa-rl": (373, 32)},
+                       "atla": {"rat": (610, 293), "pa-ad": (523, 137), "sa-rl": (495, 305)}},
+    "faucet-close-v3": {"rat-atla": {"rat": (1048, 343), "pa-ad": (1223, 348), "sa-rl": (570, 453)},
+                        "rat-wocar": {"rat": (1369, 158), "pa-ad": (1416, 208), "sa-rl": (3372, 1311)},
+                        "pa-atla": {"rat": (661, 279), "pa-ad": (371, 65), "sa-rl": (704, 239)},
+                        "atla": {"rat": (1362, 149), "pa-ad": (688, 196), "sa-rl": (426, 120)}},
+}

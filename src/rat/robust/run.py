@@ -169,6 +169,27 @@ def train_robust(config: RobustConfig, victim: Victim, target: TargetBehaviour, 
     return report
 
 
+def train_robust_from(config: RobustConfig, victim_spec: str, target: str, out: str | Path, preset: str = "cpu",
+                      budget: int | None = None, threat: ThreatModel = ThreatModel(), task: str | None = None,
+                      adversary_set: tuple[str, ...] = (), progress: bool = True) -> dict[str, Any]:
+    """:func:`train_robust` from names, as ``rat robust train`` and ``rat bench table3`` give them: the victim's
+    spec, the target's name, the adversary's settings under ``preset`` (with ``budget`` labels for RAT) and
+    ``adversary_set``'s ``NAME=VALUE`` changes to them."""
+    from rat.configs import parse_assignment, with_values
+    from rat.envs import get_target, make_task
+
+    behaviour = get_target(target)
+    victim, task = robust_task(victim_spec, behaviour, task)
+    adversary_config = adversary_settings(config, preset, target, budget)
+    if adversary_set:
+        if adversary_config is None:
+            raise RatError(f"{config.method} with wocar-critic worst-case trains no adversary; drop --adversary-set")
+        adversary_config = with_values(adversary_config, dict(parse_assignment(type(adversary_config), a)
+                                                              for a in adversary_set))
+    return train_robust(config, victim, behaviour, lambda s: make_task(task, seed=s), threat, out, adversary_config,
+                        describe={"victim": victim_spec, "task": task}, progress=progress)
+
+
 def final_returns(trainer: RobustTrainer, agent: ModuleVictim, episodes: int) -> dict[str, Any]:
     """Table 3's numbers for ``agent``: task return (mean, std) and success clean, the target's success clean, and
     the same under the run's own final adversary (its mean Δ), all on the final episodes."""
@@ -190,37 +211,62 @@ def final_returns(trainer: RobustTrainer, agent: ModuleVictim, episodes: int) ->
     return out
 
 
-def evaluate_robust(run: str | Path, attacks: list[str], preset: str = "cpu", budget: int | None = None,
-                    episodes: int = 100, seed: int = 0, progress: bool = True) -> dict[str, Any]:
-    """Fresh attacks on the robust agent of ``run``: each trained with ``preset``'s settings in ``run/eval/<attack>``
-    (resumable), then ``episodes`` attacked episodes; the table is also written to ``run/eval/table.json``."""
+def attack_agent(victim_spec: str, out: str | Path, target: str, threat: ThreatModel, attacks: list[str],
+                 preset: str = "cpu", budget: int | None = None, episodes: int = 100, seed: int = 0,
+                 progress: bool = True) -> dict[str, Any]:
+    """Each attack of ``attacks`` trained afresh against ``victim_spec`` in ``out/<attack>`` with ``preset``'s settings
+    (resumable; a finished one is not trained again), then ``episodes`` attacked episodes (kept in
+    ``out/<attack>/table-row.json``). RAT learns from labels; SA-RL and PA-AD from the target's oracle reward.
+
+    Returns table 3's cells: per attack the task return (mean, std) and the target's success, and the clean return."""
+    from rat.attacks.base import check_reward, get_attack
     from rat.experiments.runner import attack_config, attack_setup, evaluate_saved_attack, train_attack
 
-    run = Path(run)
-    report_path = run / "report.json"
-    if not report_path.exists():
+    rows, clean = {}, None
+    for method in attacks:
+        directory = Path(out) / method
+        cached = directory / "table-row.json"
+        if cached.exists():
+            rows[method] = json.loads(cached.read_text())
+            continue
+        attack = get_attack(method)
+        reward = check_reward(attack, "oracle" if method in ("sa-rl", "pa-ad") else attack.rewards[0])
+        if not (directory / "report.json").exists():
+            setup = attack_setup(victim_spec, target, threat, seed, reward, progress=progress)
+            train_attack(method, setup, attack_config(method, preset, budget, None, target), directory)
+        result = evaluate_saved_attack(directory, episodes, seed, progress=progress)
+        res, clean = result["attack"].result, result["clean"]
+        rows[method] = {"reward": reward, "return": res.mean_return, "return_std": res.std_return,
+                        "target_success": res.success_rate, "episodes": res.episodes,
+                        "clean_return": clean.mean_return, "clean_return_std": clean.std_return,
+                        "clean_target_success": clean.success_rate}
+        cached.write_text(json.dumps(rows[method], indent=1))
+    first = next(iter(rows.values()), None)
+    return {"victim": victim_spec, "target": target, "attacks": rows,
+            "clean_return": first["clean_return"] if first else None,
+            "clean_return_std": first["clean_return_std"] if first else None}
+
+
+def finished_report(run: str | Path) -> dict[str, Any]:
+    """The report of the finished robust agent in ``run`` (a clear error where it has not finished)."""
+    path = Path(run) / "report.json"
+    if not path.exists():
         raise RatError(f"'{run}' holds no finished robust agent (no report.json); finish it with the same "
                        "`rat robust train ... --out` command")
-    report = json.loads(report_path.read_text())
-    target, threat = report["target"], ThreatModel(report["epsilon"], report["norm"])
-    rows = {}
-    for method in attacks:
-        out = run / "eval" / method
-        reward = "oracle" if method in ("sa-rl", "pa-ad") else None
-        from rat.attacks.base import check_reward, get_attack
+    return json.loads(path.read_text())
 
-        attack = get_attack(method)
-        reward = check_reward(attack, reward or attack.rewards[0])
-        setup = attack_setup(str(run), target, threat, seed, reward, progress=progress)
-        train_attack(method, setup, attack_config(method, preset, budget, None, target), out)
-        result = evaluate_saved_attack(out, episodes, seed, progress=progress)
-        res = result["attack"].result
-        rows[method] = {"reward": reward, "return": res.mean_return, "return_std": res.std_return,
-                        "target_success": res.success_rate, "episodes": res.episodes}
-    clean = result["clean"] if attacks else None
-    table = {"run": str(run), "method": report["method"], "target": target, "attacks": rows,
-             "clean_return": clean.mean_return if clean else report["clean_return"],
-             "clean_return_std": clean.std_return if clean else report["clean_return_std"]}
+
+def evaluate_robust(run: str | Path, attacks: list[str], preset: str = "cpu", budget: int | None = None,
+                    episodes: int = 100, seed: int = 0, progress: bool = True) -> dict[str, Any]:
+    """Fresh attacks on the robust agent of ``run`` (:func:`attack_agent` in ``run/eval``); the table is also
+    written to ``run/eval/table.json``."""
+    run = Path(run)
+    report = finished_report(run)
+    table = attack_agent(str(run), run / "eval", report["target"], ThreatModel(report["epsilon"], report["norm"]),
+                         attacks, preset, budget, episodes, seed, progress)
+    table = {"run": str(run), "method": report["method"], **table}
+    if table["clean_return"] is None:
+        table |= {"clean_return": report["clean_return"], "clean_return_std": report["clean_return_std"]}
     (run / "eval").mkdir(exist_ok=True)
     (run / "eval" / "table.json").write_text(json.dumps(table, indent=1))
     return table

@@ -69,6 +69,7 @@ class RobustConfig:
     adversary_phase_steps: int = 2_000  #: length of each adversary phase after phase 0
     first_adversary_steps: int = 50_000  #: phase 0, the adversary against the starting agent (RAT's cpu preset)
     critic_warmup: int = 10_000  #: finetune: clean steps of the starting actor, critic-only updates
+    warmup_updates: int = 6  #: finetune: critic updates per warm-up step (Q must near the actor's value first)
     random_steps: int = 5_000  #: scratch: uniform random actions first
     adversary_sample: bool = True  #: the agent's phases see Δ sampled from the adversary (ATLA's), else its mean
     adversary_reward: str = "target"  #: atla, pa-atla: the PPO adversary's reward, the target's or neg-task (ATLA's −r)
@@ -95,7 +96,7 @@ class RobustConfig:
             if getattr(self, name) not in allowed:
                 raise RatError(f"{name.replace('_', '-')} must be one of {', '.join(allowed)}, got '{getattr(self, name)}'")
         for name in ("agent_steps", "phase_steps", "adversary_phase_steps", "eval_every", "eval_episodes",
-                     "final_eval_episodes", "checkpoint_every", "worst_case_steps"):
+                     "final_eval_episodes", "checkpoint_every", "worst_case_steps", "warmup_updates"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
         for name in ("first_adversary_steps", "critic_warmup", "random_steps", "wocar_kappa", "state_reg"):
@@ -276,7 +277,8 @@ class RobustTrainer:
         else:
             self.agent_steps += 1
         if len(self.buffer) >= cfg.sac.batch_size:
-            self._update(actor=not warm)
+            for _ in range(cfg.warmup_updates if warm and cfg.init == "finetune" else 1):
+                self._update(actor=not warm)
         if not (terminated or truncated):
             return None
         self.obs = None

@@ -1,0 +1,50 @@
+"""`rat bench table3`: the grid's driver, its caching and its table."""
+
+import json
+
+import pytest
+
+from rat.experiments.table3 import markdown_table3, pooled
+
+
+def row(name, seed, ret, std, success, clean=(100.0, 10.0)):
+    return {"task": "faucet-close-v3", "row": name, "seed": seed, "target": "reach", "epsilon": 0.1, "norm": "linf",
+            "preset": "cpu", "clean_return": clean[0], "clean_return_std": clean[1],
+            "attacks": {"rat": {"return": ret, "return_std": std, "target_success": success},
+                        "random": {"return": 90.0, "return_std": 0.0, "target_success": 0.0}}}
+
+
+def test_pooled_is_the_mean_and_std_of_all_the_episodes():
+    import numpy as np
+
+    a, b = np.array([1.0, 3.0, 5.0]), np.array([10.0, 12.0, 20.0])
+    mean, std = pooled([a.mean(), b.mean()], [a.std(), b.std()])
+    assert mean == pytest.approx(np.concatenate([a, b]).mean()) and std == pytest.approx(np.concatenate([a, b]).std())
+
+
+def test_the_table_puts_each_row_beside_the_papers_and_leaves_random_out_of_the_average():
+    text = markdown_table3([row("undefended", 0, 10.0, 5.0, 0.9), row("rat-atla", 0, 40.0, 4.0, 0.2),
+                            row("rat-atla", 1, 60.0, 4.0, 0.4)])
+    lines = {line.split(" | ")[0]: line for line in text.splitlines() if line.startswith("| ")}
+    assert "| undefended (zoo SAC) | 1 | 100 ± 10 | **10 ± 5** (90%) | **90 ± 0** (0%) | 10 |" in text
+    atla = lines["| RAT-ATLA"]
+    assert "| 2 |" in atla and "**50 ± 11** (30%) / 1048" in atla  # two seeds pooled; the paper's 1048
+    assert atla.endswith("| 50 / 947 |")  # the attacks' mean without random's; the paper's avg R
+
+
+@pytest.mark.slow
+def test_bench_table3_attacks_the_undefended_victim_and_keeps_what_it_measured(tmp_path, capsys):
+    from rat.cli import main
+
+    args = ["bench", "table3", "--rows", "undefended", "--attacks", "random", "--episodes", "3", "--preset", "smoke",
+            "--out", str(tmp_path)]
+    assert main(args) == 0
+    cell = tmp_path / "faucet-close-v3" / "undefended-seed0"
+    record = json.loads((cell / "row.json").read_text())
+    assert record["attacks"]["random"]["episodes"] == 3 and record["clean_return"] > 1000  # the zoo victim succeeds
+    assert "undefended (zoo SAC)" in (tmp_path / "table3.md").read_text()
+    (cell / "eval" / "random" / "table-row.json").write_text(json.dumps({**record["attacks"]["random"], "return": -1.0}))
+    assert main(args) == 0  # finished cells are not measured again
+    assert json.loads((cell / "row.json").read_text())["attacks"]["random"]["return"] == -1.0
+    assert main(["bench", "table3", "--rows", "nobody", "--out", str(tmp_path)]) == 2
+    assert "unknown table-3 rows nobody" in capsys.readouterr().err
