@@ -21,6 +21,7 @@ demo: $(STAMP)
 		--epsilon 0.1 --budget 1000 --preset cpu --seed 0 --out runs/demo
 
 test: $(STAMP) browser
+	$(BIN)/ruff check src tests examples benchmarks
 	$(BIN)/python -m pytest -q
 
 # The labelling page's browser test drives Debian's chromium; install it where we can (root and apt).
@@ -34,6 +35,7 @@ browser:
 
 # The fast tier while working: everything but the tests marked slow (Meta-World episodes, PPO, Ray, subprocesses).
 test-fast: $(STAMP)
+	$(BIN)/ruff check src tests examples benchmarks
 	$(BIN)/python -m pytest -q -m "not slow"
 
 zoo: $(STAMP)

@@ -149,7 +149,7 @@ def main() -> None:
         seen: list[np.ndarray] = []
         delta = adversary_function(adversary)
 
-        def recording(obs: np.ndarray) -> np.ndarray:
+        def recording(obs: np.ndarray, seen=seen, delta=delta) -> np.ndarray:
             seen.append(np.array(obs, dtype=np.float32))
             return delta(obs)
 

@@ -66,7 +66,7 @@ class Server:
                     return
             except OSError:
                 if self.process.poll() is not None:
-                    raise RuntimeError(f"the server exited: {self.process.stderr.read().decode()[-500:]}")
+                    raise RuntimeError(f"the server exited: {self.process.stderr.read().decode()[-500:]}") from None
                 time.sleep(0.05)
         raise RuntimeError("the server did not start within 60 s")
 

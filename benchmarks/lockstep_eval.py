@@ -17,8 +17,8 @@ from pathlib import Path
 
 import torch
 
-from rat.attacks.evaluation import evaluate_attack
 from rat.attacks.base import saved_attack_meta
+from rat.attacks.evaluation import evaluate_attack
 from rat.attacks.rat import load_rat_attack
 from rat.attacks.threat import ThreatModel
 from rat.envs import make_task

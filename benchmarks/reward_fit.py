@@ -60,8 +60,9 @@ def main() -> None:
         data = labels.read()
     order = rng.permutation(len(data))
     held, train = order[: len(order) // 9], order[len(order) // 9:]
-    part = lambda index: type(data.pairs)(*(getattr(data.pairs, f)[index] for f in
-                                           ("obs0", "act0", "reward0", "obs1", "act1", "reward1")))
+    def part(index):
+        return type(data.pairs)(*(getattr(data.pairs, f)[index] for f in
+                                               ("obs0", "act0", "reward0", "obs1", "act1", "reward1")))
     tr, te = part(train), part(held)
     config = RewardModelConfig(members=args.members, hidden=args.hidden, layers=args.layers, max_epochs=10 ** 6,
                                max_updates=args.every, normalize_inputs=args.normalize_inputs, lr=args.lr)

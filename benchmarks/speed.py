@@ -171,10 +171,10 @@ def same_as_base(base: dict, steps=(1, 10, 100, 300)) -> None:
 
 def labelled_pairs(n: int, seed: int):
     """``n`` scripted labels of 50-step segments of random-action faucet-close-v3, by ``reach``."""
+    from rat.experiments.presets import rat_config
     from rat.experiments.runner import attack_setup
     from rat.preferences.segments import EpisodeHistory
     from rat.preferences.teacher import ScriptedTeacher
-    from rat.experiments.presets import rat_config
 
     setup = attack_setup("zoo:faucet-close-v3", "reach", rat_config("cpu").threat, progress=False)
     env, target = setup.make_env(seed), setup.target

@@ -4,13 +4,20 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from point_env import HORIZON, PointGoal
 from scipy import stats
 
-from point_env import HORIZON, PointGoal
 from rat.agents.networks import TanhGaussianActor, TwinCritic
 from rat.agents.sac import SAC, SACConfig
-from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
-                               saturation)
+from rat.attacks.losses import (
+    Adversary,
+    Imitation,
+    WeightingNetwork,
+    gaussian_kl,
+    hypergradient,
+    inner_loss,
+    saturation,
+)
 from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, refined_function, weighting_update
 from rat.attacks.threat import NORMS, AttackedObservation, ThreatModel, perturbation_norm, project, random_delta
 from rat.errors import RatError
@@ -439,6 +446,7 @@ class _GoalXReward:
 
 def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_path):
     from point_env import point_victim
+
     from rat.attacks.rat import learned_return, select_by_learned_reward
     from rat.checkpoint import save_checkpoint
 
@@ -530,6 +538,7 @@ def test_a_refined_attack_on_a_sequence_victim_follows_each_episodes_context_alo
     """Refinement runs the victim on its context: the attack keeps each episode's as the victim's keeper does."""
     pytest.importorskip("transformers", reason="pip install 'rat[dt]' (the dev extra has it)")
     from point_env import point_dt_victim
+
     from rat.victims.base import VictimPolicy
 
     victim = point_dt_victim(tmp_path / "dt")

@@ -10,13 +10,20 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from point_env import BESIDE, PointGoal, point_victim
 from scipy import stats
 
-from point_env import BESIDE, PointGoal, point_victim
-from rat.attacks import AttackSetup, ThreatModel, get_attack, load_attack
+from rat.attacks import AttackSetup, ThreatModel, evaluate_attack, get_attack, load_attack
+from rat.attacks.gradient import directed_perturbation, mad_perturbation
 from rat.attacks.rl import DirectorEnv, PPOConfig, StateAdversaryEnv
 from rat.attacks.simple import SimpleConfig
+from rat.attacks.threat import perturbation_norm, random_delta
+from rat.envs import get_target, make_task
+from rat.errors import RatError
 from rat.preferences.offline import learn_reward, reward_source
+from rat.preferences.segments import SegmentPairs
+from rat.preferences.store import LabelStore
+from rat.victims import load_victim
 
 
 def train_baseline(method, victim, target, make_env, out, epsilon=0.1, ppo=None, labels=None, seed=0, reward=None):
@@ -26,14 +33,7 @@ def train_baseline(method, victim, target, make_env, out, epsilon=0.1, ppo=None,
     setup = AttackSetup(victim, target, make_env, ThreatModel(epsilon), seed, reward, labels, progress=False)
     config = (ppo or PPOConfig()) if attack.config is PPOConfig else SimpleConfig()
     return attack.train(setup, config, out)
-from rat.attacks.gradient import directed_perturbation, mad_perturbation
-from rat.attacks import evaluate_attack
-from rat.attacks.threat import perturbation_norm, random_delta
-from rat.envs import get_target, make_task
-from rat.errors import RatError
-from rat.preferences.segments import SegmentPairs
-from rat.preferences.store import LabelStore
-from rat.victims import load_victim
+
 
 EPS = 0.1
 

@@ -2,13 +2,13 @@
 
 import sys
 
-import gymnasium as gym
 import click
+import gymnasium as gym
 import pytest
 
+from rat.checkpoint import save_checkpoint
 from rat.cli import main
 from rat.errors import RatError
-from rat.checkpoint import save_checkpoint
 
 
 def run(capsys, *argv):
@@ -198,8 +198,9 @@ def test_attack_bad_inputs(capsys, tmp_path):
                       "the label budget is 0", "--reward oracle")
     assert not (tmp_path / "d").exists()
     from dataclasses import replace
-    from rat.experiments.presets import rat_config
+
     from rat.attacks.rat import RAT
+    from rat.experiments.presets import rat_config
     from rat.experiments.runner import attack_setup
     oracle = RAT.configure(attack_setup("zoo:drawer-open-v3", "reach", reward="oracle", progress=False),
                            rat_config("cpu", budget=0))

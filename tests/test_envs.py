@@ -57,7 +57,7 @@ def test_info_reports_positions_success_and_task_reward():
 def test_horizon_is_500_steps_and_truncates():
     env = make_task("window-open-v3")
     env.reset(seed=0)
-    for t in range(1, HORIZON + 1):
+    for t in range(1, HORIZON + 1):  # noqa: B007 (the count is read after the loop)
         _, _, terminated, truncated, _ = env.step(np.zeros(4))
         assert not terminated
         if truncated:

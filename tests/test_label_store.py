@@ -1,5 +1,6 @@
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import textwrap
@@ -99,7 +100,7 @@ def test_reading_a_store_read_only_never_writes_to_it(tmp_path, rng):
     before = (tmp_path / "l.sqlite").read_bytes()
     with LabelStore(tmp_path / "l.sqlite", read_only=True) as store:
         assert store.count() == 2 and store.rounds("run")[0]["asked"] == 2
-        with pytest.raises(Exception):
+        with pytest.raises(sqlite3.OperationalError, match="readonly"):
             store.add(random_pairs(1, rng), np.array([1.0]), {"type": "scripted"}, "run")
     assert (tmp_path / "l.sqlite").read_bytes() == before
 

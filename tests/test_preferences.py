@@ -9,11 +9,11 @@ from scipy import stats
 
 from rat.agents.exploration import RunningMeanStd, knn_distance, state_entropy_reward
 from rat.errors import RatError
+from rat.preferences.labeller import Labeller, QueryRound
 from rat.preferences.queries import kcenter_greedy, select_queries
 from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, bradley_terry_loss, reward_agreement
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory, SegmentPairs
-from rat.preferences.labeller import Labeller, QueryRound
 from rat.preferences.teacher import ScriptedTeacher, TeacherConfig, segment_returns
 
 
@@ -195,7 +195,8 @@ def test_a_held_out_round_learns_as_well_and_stops_itself_keeping_each_members_b
     # the next round trains on the 100 new labels (90 of them) and 90 old ones, and knows which are new
     more = synthetic_pairs(100, rng)
     y_more = np.concatenate([y, ScriptedTeacher().label(more, rng).y])
-    cat = lambda a, b: np.concatenate([a, b])
+    def cat(a, b):
+        return np.concatenate([a, b])
     again = ensemble.train_round(cat(train.obs0, more.obs0), cat(train.act0, more.act0), cat(train.obs1, more.obs1),
                                  cat(train.act1, more.act1), y_more, rng)
     assert again["reward_new_labels"] == 100 and ensemble.labels_trained == 700

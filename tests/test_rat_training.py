@@ -12,16 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from point_env import BESIDE, HORIZON, PointGoal, point_victim
 from safetensors.torch import load_file
 from scipy import stats
 
-from point_env import BESIDE, HORIZON, PointGoal, point_victim
 from rat.agents.sac import SACConfig
 from rat.attacks import AttackSetup, ThreatModel, evaluate_attack
-from rat.checkpoint import load_checkpoint
-from rat.errors import RatError
 from rat.attacks.rat import RATConfig, train_rat
 from rat.attacks.threat import random_delta
+from rat.checkpoint import load_checkpoint
+from rat.errors import RatError
 from rat.preferences.pebble import PebbleConfig
 from rat.preferences.reward_model import RewardModelConfig
 
@@ -145,7 +145,7 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
     assert set(state["critic"]) >= {"q1.0.weight", "q2.0.weight"}  # and its critic, for refine-loss q
     # the kept adversary is saved with the π_θ it imitated: a snapshot's own, or the last one's
     step = report.details["selected_step"]
-    imitated = load_checkpoint(tmp_path / "run" / ("snapshots/adversary-%d" % step if step < 1000 else "adversary-last"))[0]
+    imitated = load_checkpoint(tmp_path / "run" / (f"snapshots/adversary-{step}" if step < 1000 else "adversary-last"))[0]
     assert all(torch.equal(state["intention"][k], imitated["intention"][k]) for k in state["intention"])
     assert torch.equal(state["adversary"]["policy.trunk.0.weight"], imitated["adversary"]["policy.trunk.0.weight"])
     pi_500, pi_1000 = (load_checkpoint(tmp_path / "run" / "snapshots" / f"adversary-{n}")[0]["intention"]

@@ -165,8 +165,9 @@ def test_the_speed_benchmark_times_an_earlier_commits_agent_beside_this_one_with
     import sys
     from pathlib import Path
 
-    import rat
     from benchmark_scripts import load
+
+    import rat
 
     speed = load("speed")
     src = tmp_path / "src"

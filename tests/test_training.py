@@ -9,8 +9,7 @@ import torch
 from rat.agents.sac import SACConfig
 from rat.checkpoint import load_checkpoint
 from rat.errors import RatError
-from rat.victims import load_victim
-from rat.victims import training
+from rat.victims import load_victim, training
 from rat.victims.training import VictimConfig, train_victim
 
 TINY_BC = VictimConfig(task="drawer-close-v3", method="bc", demo_episodes=4, demo_episode_steps=100,

@@ -7,7 +7,15 @@ from torch import nn
 from rat.agents.networks import TanhGaussianActor
 from rat.envs import make_task
 from rat.errors import RatError
-from rat.victims import ModuleVictim, Victim, check_compatible, load_rat_victim, load_sb3_victim, load_victim, save_victim
+from rat.victims import (
+    ModuleVictim,
+    Victim,
+    check_compatible,
+    load_rat_victim,
+    load_sb3_victim,
+    load_victim,
+    save_victim,
+)
 
 sb3 = pytest.importorskip("stable_baselines3")
 

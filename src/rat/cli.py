@@ -218,9 +218,8 @@ _method_help = "bc: behaviour cloning of the scripted expert (minutes); sac-demo
 def victim_train(ctx, task, method, seed, out, tensorboard, assignments, **_) -> None:
     """Train a victim. Re-running with the same --out resumes an interrupted run."""
     from rat.envs import LOCOMOTION_TASKS, check_task
-    from rat.victims.training import VictimConfig, train_victim
-
     from rat.runs import check_run_dir
+    from rat.victims.training import VictimConfig, train_victim
 
     check_task(task)
     config = config_from_options(ctx, VictimConfig, base=VictimConfig(task=task, method=method), assignments=assignments)
@@ -246,10 +245,9 @@ def victim_eval(victim_spec, task, target, episodes, seed, video, video_episodes
     from rat.envs import LOCOMOTION_TASKS, get_target, make_task
     from rat.eval import evaluate
     from rat.experiments.runner import load_victim_for
+    from rat.runs import check_writable_file
     from rat.victims import check_compatible
     from rat.victims.base import numpy_policy
-
-    from rat.runs import check_writable_file
 
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
@@ -310,8 +308,8 @@ def victim_dt(ctx, task, seed, out, assignments, **_) -> None:
 def victim_zoo(ctx, tasks, jobs, dest, work_dir, **_) -> None:
     """Regenerate the victim zoo (behaviour cloning, default settings) and record the timings."""
     from rat.envs import check_task
-    from rat.victims.training import VictimConfig
     from rat.runs import check_writable_dir
+    from rat.victims.training import VictimConfig
     from rat.victims.zoo import regenerate_zoo, user_zoo_dir
 
     for t in tasks:
@@ -371,7 +369,6 @@ def intention_train(ctx, task, target, budget, seed, out, tensorboard, assignmen
     """Train an intention policy for TARGET from preference labels (scripted, or a person's with --labeller web);
     resumes with the same --out."""
     from rat.preferences.intention import IntentionConfig, train_intention
-
     from rat.runs import check_run_dir
 
     config = config_from_options(ctx, IntentionConfig, assignments=assignments)

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 from scipy import stats
@@ -52,7 +52,7 @@ class EvalResult:
         return asdict(self)
 
     @classmethod
-    def of(cls, returns: Sequence[float], first_success_step: Sequence[int], success_at_last: Sequence[bool]) -> "EvalResult":
+    def of(cls, returns: Sequence[float], first_success_step: Sequence[int], success_at_last: Sequence[bool]) -> EvalResult:
         """The outcome of episodes given, per episode, its return, its first successful step (-1: none) and
         whether its last step passed the test."""
         successes = [step >= 0 for step in first_success_step]

@@ -6,7 +6,7 @@ bootstraps from its last next-observation, as the MDP goes on beyond the cut.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch

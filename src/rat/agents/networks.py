@@ -10,7 +10,6 @@ from torch.nn import functional as F
 
 from rat.errors import RatError
 
-
 PRECISIONS = ("fp32", "bf16")  #: arithmetic of the networks' hidden layers in an update (:func:`mixed_precision`)
 
 
@@ -82,7 +81,7 @@ class TanhGaussianActor(nn.Module):
         self.obs_dim, self.act_dim = obs_dim, act_dim
 
     @classmethod
-    def from_state_dict(cls, weights: dict[str, torch.Tensor]) -> "TanhGaussianActor":
+    def from_state_dict(cls, weights: dict[str, torch.Tensor]) -> TanhGaussianActor:
         """An actor of the shape ``weights`` have (as :meth:`state_dict` gave them), loaded with them."""
         linear = sorted((k for k in weights if k.endswith(".weight")), key=lambda k: int(k.split(".")[1]))
         first, last = weights[linear[0]], weights[linear[-1]]
@@ -122,7 +121,7 @@ class TwinCritic(nn.Module):
         self.q2 = mlp(obs_dim + act_dim, 1, hidden, layers)
 
     @classmethod
-    def from_state_dict(cls, weights: dict[str, torch.Tensor], obs_dim: int) -> "TwinCritic":
+    def from_state_dict(cls, weights: dict[str, torch.Tensor], obs_dim: int) -> TwinCritic:
         """A critic of the shape ``weights`` have (as :meth:`state_dict` gave them), loaded with them."""
         linear = sorted((k for k in weights if k.startswith("q1.") and k.endswith(".weight")),
                         key=lambda k: int(k.split(".")[1]))

@@ -7,8 +7,8 @@ the learning rate (``docs/design.md`` §4).
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Callable
 
 import numpy as np
 import torch

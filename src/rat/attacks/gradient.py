@@ -15,7 +15,7 @@ projection, so the result is always inside the ball.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch

@@ -24,9 +24,9 @@ had there, packed beside the replay buffer, so the adversary trains on states *i
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -36,8 +36,16 @@ from rat import seeds
 from rat.agents.networks import TanhGaussianActor, TwinCritic
 from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack, saved_attack_meta, saved_attack_path
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
-from rat.attacks.losses import (Adversary, Imitation, WeightingNetwork, gaussian_kl, hypergradient, inner_loss,
-                               intention_gaussian, saturation)
+from rat.attacks.losses import (
+    Adversary,
+    Imitation,
+    WeightingNetwork,
+    gaussian_kl,
+    hypergradient,
+    inner_loss,
+    intention_gaussian,
+    saturation,
+)
 from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
 from rat.checkpoint import load_checkpoint, save_checkpoint
 from rat.device import resolve_device
@@ -104,7 +112,7 @@ class RATConfig:
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
-        self.threat  # validates epsilon and norm
+        _ = self.threat  # validates epsilon and norm
         if self.ablation not in ABLATIONS:
             raise RatError(f"unknown ablation '{self.ablation}'; use one of: {', '.join(ABLATIONS)}")
         if self.select not in ("last", "reward"):
@@ -199,11 +207,11 @@ class IntentionPolicy:
     critic: TwinCritic | None = None
 
     @classmethod
-    def of(cls, objective: Imitation) -> "IntentionPolicy":
+    def of(cls, objective: Imitation) -> IntentionPolicy:
         return cls(objective.intention, objective.critic)
 
     @classmethod
-    def from_state(cls, state: dict) -> "IntentionPolicy | None":
+    def from_state(cls, state: dict) -> IntentionPolicy | None:
         """The π_θ in a saved adversary's state; None where it holds none (an older version's)."""
         if "intention" not in state:
             return None
@@ -216,7 +224,7 @@ class IntentionPolicy:
         critic = {} if self.critic is None else {"critic": self.critic.state_dict()}
         return {"intention": self.actor.state_dict(), **critic}
 
-    def to(self, device) -> "IntentionPolicy":
+    def to(self, device) -> IntentionPolicy:
         return IntentionPolicy(self.actor.to(device), None if self.critic is None else self.critic.to(device))
 
 

@@ -16,9 +16,9 @@ any other PPO can train them too.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -38,7 +38,6 @@ from rat.preferences.reward_model import RewardModelConfig
 from rat.reports import AttackReport
 from rat.runs import Run
 from rat.victims.base import Victim, VictimPolicy, check_compatible, require_memoryless
-
 
 # --- the adversary MDPs ---------------------------------------------------------------------------------
 
@@ -220,7 +219,7 @@ class PPOTrainer:
 
     kind = "ppo-run"
 
-    def __init__(self, attack: "PPOAttack", setup: AttackSetup, mdp: gym.Env, cfg: PPOConfig):
+    def __init__(self, attack: PPOAttack, setup: AttackSetup, mdp: gym.Env, cfg: PPOConfig):
         self.attack, self.setup, self.cfg, self.finished = attack, setup, cfg, False
         self.model = _ppo(mdp, cfg, setup.seed)
 

@@ -8,8 +8,9 @@ metadata in JSON; loading never unpickles), and ``report.json``.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 

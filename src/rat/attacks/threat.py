@@ -14,8 +14,8 @@ released code applied at deployment; reachable only by name).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import gymnasium as gym
 import numpy as np

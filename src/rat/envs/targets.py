@@ -38,8 +38,9 @@ Register your own behaviour with :func:`register_target`::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

@@ -144,7 +144,7 @@ class GridPreset:
             raise RatError(f"baseline reward '{self.baseline_reward}': use one of {', '.join(BASELINE_REWARDS)}")
 
 
-    def labels_for(self, cell: "Cell") -> int:
+    def labels_for(self, cell: Cell) -> int:
         from rat.experiments.table1 import paper_row
 
         row = f"{cell.scenario}/{paper_row(cell.task, cell.scenario)}"
@@ -152,7 +152,7 @@ class GridPreset:
         fallback = self.labels.get("target", self.labels["manipulation"])
         return int(self.labels_by_row.get(row, self.labels.get(cell.scenario, fallback)))
 
-    def with_labels(self, labels: dict[str, int]) -> "GridPreset":
+    def with_labels(self, labels: dict[str, int]) -> GridPreset:
         """This preset with other label counts per scenario (``manipulation``, ``opposite``, ``target``); a
         scenario given here ignores the preset's per-row counts for it."""
         for scenario, count in labels.items():

@@ -20,16 +20,16 @@ the paper's table 1, the paper's figure beside ours) and ``curves-<task>.png``.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import time
 import traceback
+from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-import dataclasses
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -75,18 +75,17 @@ class Cell:
         return Path(out) / "cells" / self.key
 
     @classmethod
-    def from_key(cls, key: str) -> "Cell":
+    def from_key(cls, key: str) -> Cell:
         task, scenario, method, seed = key.rsplit("/", 3)  # a task may hold a slash (dt/halfcheetah-v5)
         return cls(task, scenario, method, int(seed.removeprefix("seed")))
 
-    def label_source(self) -> "Cell":
+    def label_source(self) -> Cell:
         """The RAT cell whose labels a preference-based baseline learns from."""
         return Cell(self.task, self.scenario, "rat", self.seed)
 
 
 def grid_cells(tasks: Iterable[str], scenarios: Iterable[str], methods: Iterable[str], seeds: Iterable[int]) -> list[Cell]:
     from rat.envs import check_task
-
     from rat.victims.zoo import DT_PREFIX, zoo_dt_path
 
     tasks, scenarios, methods, seeds = list(tasks), list(scenarios), list(methods), list(seeds)

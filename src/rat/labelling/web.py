@@ -58,7 +58,7 @@ class WebLabellingConfig:
     def needs_token(self) -> bool:
         return self.host not in LOOPBACK
 
-    def with_token(self) -> "WebLabellingConfig":
+    def with_token(self) -> WebLabellingConfig:
         """This configuration with a token generated where one is needed and none was given."""
         if self.needs_token and not self.token:
             return replace(self, token=secrets.token_urlsafe(24))

@@ -20,16 +20,16 @@ import numpy as np
 from rat import seeds
 from rat.device import resolve_device
 from rat.envs import check_task, get_target, make_task
-from rat.envs.targets import TargetBehaviour
 from rat.envs.physics import physics_of
+from rat.envs.targets import TargetBehaviour
 from rat.errors import RatError
 from rat.eval import evaluate
 from rat.loop import TrainingLoop, write_report
+from rat.plots import plot_reward_quality, plot_training
 from rat.preferences.labeller import Labeller
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.reward_model import reward_agreement
 from rat.preferences.segments import EpisodeHistory
-from rat.plots import plot_reward_quality, plot_training
 from rat.preferences.store import LabelStore
 from rat.reports import IntentionReport
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything

@@ -20,8 +20,8 @@ Every label goes to a :class:`~rat.preferences.store.LabelStore` as it arrives.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
@@ -30,12 +30,12 @@ from rat.agents.buffer import ReplayBuffer
 from rat.agents.exploration import RunningMeanStd, state_entropy_reward
 from rat.agents.sac import SAC, SACConfig
 from rat.errors import RatError
+from rat.preferences.labeller import Labeller, QueryRound
 from rat.preferences.queries import STRATEGIES, pair_features, select_queries
 from rat.preferences.reward_model import RewardEnsemble, RewardModelConfig, reward_agreement
 from rat.preferences.schedule import FeedbackSchedule
 from rat.preferences.segments import EpisodeHistory
 from rat.preferences.store import LabelStore
-from rat.preferences.labeller import Labeller, QueryRound
 from rat.preferences.teacher import ScriptedTeacher, TeacherConfig
 
 
@@ -77,7 +77,7 @@ class PebbleConfig:
         for name in ("first_strategy", "strategy"):
             if getattr(self, name) not in STRATEGIES:
                 raise RatError(f"unknown query strategy '{getattr(self, name)}'; use one of: {', '.join(STRATEGIES)}")
-        self.schedule  # validates budget and round settings
+        _ = self.schedule  # validates budget and round settings
 
     @property
     def warm_up(self) -> int:

@@ -12,7 +12,7 @@ Strategies (B-Pref's, by name):
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -179,7 +179,7 @@ class RewardEnsemble(nn.Module):
             self.rounds += 1
             return metrics
         updates = 0
-        for epoch in range(cfg.max_epochs):
+        for epoch in range(cfg.max_epochs):  # noqa: B007 (the count is read after the loop)
             correct, total_loss = np.zeros(cfg.members), 0.0
             batches = -(-n // cfg.batch_size)
             if cfg.max_updates is not None:  # the last epoch may be cut short: a random part of the labels

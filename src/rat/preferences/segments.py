@@ -36,7 +36,7 @@ class SegmentPairs:
     def __len__(self) -> int:
         return len(self.obs0)
 
-    def select(self, idx) -> "SegmentPairs":
+    def select(self, idx) -> SegmentPairs:
         physics = tuple(a[idx] for a in self.physics) if self.physics is not None else None
         return SegmentPairs(*(a[idx] for a in self.arrays()), physics=physics)
 

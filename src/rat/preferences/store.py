@@ -190,7 +190,7 @@ class LabelStore:
     def close(self) -> None:
         self.db.close()
 
-    def __enter__(self) -> "LabelStore":
+    def __enter__(self) -> LabelStore:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import copy
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 from rat import seeds
 from rat.agents.networks import TanhGaussianActor

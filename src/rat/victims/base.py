@@ -116,7 +116,7 @@ class ModuleVictim(nn.Module):
         self.register_buffer("low", torch.as_tensor(action_space.low, dtype=torch.float32))
         self.register_buffer("high", torch.as_tensor(action_space.high, dtype=torch.float32))
 
-    def train(self, mode: bool = True) -> "ModuleVictim":
+    def train(self, mode: bool = True) -> ModuleVictim:
         # A victim never leaves eval mode (dropout or batch-norm would make it stochastic).
         return super().train(False)
 

@@ -77,7 +77,7 @@ class ExpertData:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "ExpertData":
+    def load(cls, path: str | Path) -> ExpertData:
         from safetensors import safe_open
 
         try:

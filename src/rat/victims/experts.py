@@ -50,7 +50,7 @@ def collect_demonstrations(env: MetaWorldTask, episodes: int, noise: float, rng:
     for _ in tqdm(range(episodes), desc=f"demonstrations {env.task}", disable=not progress, leave=False):
         obs, _ = env.reset(seed=int(rng.integers(2**31)))
         success = False
-        for t in range(episode_steps or 10**9):
+        for _t in range(episode_steps or 10**9):
             label = np.clip(expert.get_action(obs), -1.0, 1.0)
             executed = np.clip(label + noise * rng.standard_normal(label.shape), -1.0, 1.0)
             next_obs, reward, terminated, truncated, info = env.step(executed)

@@ -73,7 +73,7 @@ class DTContext:
         """Past steps held (of the first episode of the batch)."""
         return int(self.mask[0].sum().item())
 
-    def repeat(self, n: int) -> "DTContext":
+    def repeat(self, n: int) -> DTContext:
         """One episode's context for a batch of ``n`` observations."""
         return DTContext(*(x.expand(n, *x.shape[1:]) for x in self.fields()))
 
@@ -93,7 +93,7 @@ class PastKeysValues:
     qkv: tuple[torch.Tensor, ...]
     mask: torch.Tensor
 
-    def repeat(self, n: int) -> "PastKeysValues":
+    def repeat(self, n: int) -> PastKeysValues:
         return PastKeysValues(tuple(x.expand(n, *x.shape[1:]) for x in self.qkv), self.mask.expand(n, -1))
 
 
@@ -108,7 +108,7 @@ class PreparedContext:
     past: PastKeysValues
     timestep: torch.Tensor  #: ``[B, 1]`` the coming step's timestep, as the model reads it
 
-    def repeat(self, n: int) -> "PreparedContext":
+    def repeat(self, n: int) -> PreparedContext:
         return PreparedContext(self.past.repeat(n), self.timestep.expand(n, -1))
 
 
@@ -145,7 +145,7 @@ class DecisionTransformerVictim(nn.Module):
         self._widths = (past * obs_dim, past * act_dim, context_length, context_length, past)
         self.split_forward = self._split_matches_model()  #: see _split_action
 
-    def train(self, mode: bool = True) -> "DecisionTransformerVictim":
+    def train(self, mode: bool = True) -> DecisionTransformerVictim:
         return super().train(False)  # dropout would make the victim stochastic
 
     def initial_context(self, batch_size: int = 1) -> DTContext:

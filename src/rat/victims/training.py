@@ -24,8 +24,8 @@ from rat.agents.networks import TanhGaussianActor
 from rat.agents.sac import SAC, SACConfig
 from rat.device import resolve_device
 from rat.envs import LOCOMOTION_TASKS, make_task
-from rat.eval import EvalResult, evaluate
 from rat.errors import RatError
+from rat.eval import EvalResult, evaluate
 from rat.loop import TrainingLoop
 from rat.runs import Run, git_commit, restore_rng_state, rng_state, seed_everything
 from rat.victims.adapters import save_victim
