@@ -171,7 +171,7 @@ def test_attack_on_a_zoo_victim_then_attack_eval_from_the_cli(capsys, tmp_path):
                          "--refine-loss", "l2-or-q", "--refine-switch-gap", "1e9", "--json")  # no gap is above it
     assert code == 0 and __import__("json").loads(out)["refined_gap"] == refined["refined_gap"], err  # so l2's alone
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "run"), "--refine-steps", "3", "--refine-loss",
-                           "kl", "--refine-switch-gap", "0.5")[::2], "give --refine-loss l2-or-q with it")
+                           "q", "--refine-switch-gap", "0.5")[::2], "give --refine-loss l2-or-q with it")
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "run"), "--refine-steps", "3", "--refine-loss",
                            "l2-or-q", "--refine-switch-gap", "-1")[::2], "refine-switch-gap must be ≥ 0")
     code, out, err = run(capsys, "attack", "eval", str(tmp_path / "run" / "adversary.json"), "--episodes", "1",
@@ -258,7 +258,7 @@ def test_a_baseline_from_the_cli_then_attack_eval(capsys, tmp_path):
     assert code == 0 and result["method"] == "random" and result["task"] == "drawer-close-v3" and result["within_budget"]
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-steps", "5")[::2],
                       "drop them")
-    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-loss", "kl")[::2],
+    assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-loss", "q")[::2],
                       "drop them")
     assert_user_error(*run(capsys, "attack", "eval", str(tmp_path / "random"), "--refine-switch-gap", "1")[::2],
                       "drop them")

@@ -581,7 +581,7 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
 @click.option("--refine-steps", type=int, default=None,
               help="RAT only: Adam steps on Δ per observation towards the intention policy's action "
                    "(0: the adversary network's Δ alone) [the run's refine_steps]")
-@click.option("--refine-loss", type=click.Choice(["l2", "kl", "q", "l2-or-q"]), default=None,
+@click.option("--refine-loss", type=click.Choice(["l2", "q", "l2-or-q"]), default=None,
               help="RAT only: what refinement minimises: the squared action gap (l2), the adversary's own "
                    "KL loss (kl), minus the intention policy's critic at the victim's action (q), or l2 and "
                    "then q where l2 leaves a gap above the run's refine_switch_gap (l2-or-q) [the run's refine_loss]")

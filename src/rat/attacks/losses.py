@@ -139,39 +139,31 @@ class Imitation:
         return (self.temperature.detach() * log_prob - torch.min(q1, q2)).mean()
 
 
-def inner_loss(weights: torch.Tensor, kl: torch.Tensor, normalise: bool = False) -> torch.Tensor:
-    """L(α; ω, θ) = mean_s h_ω(s) · KL_s, or with ``normalise`` Σ_s h_ω(s) KL_s / Σ_s h_ω(s).
-
-    Normalised, only the weights' ratios matter: scaling every weight at once changes nothing, so the
-    hypergradient can only re-weight states (a departure; ``docs/design.md`` §5).
-    """
-    if normalise:
-        return (weights * kl).sum() / weights.sum()
+def inner_loss(weights: torch.Tensor, kl: torch.Tensor) -> torch.Tensor:
+    """L(α; ω, θ) = mean_s h_ω(s) · KL_s."""
     return (weights * kl).mean()
 
 
 def hypergradient(objective: Imitation, adversary: Adversary, weighting: WeightingNetwork, obs_inner: torch.Tensor,
                   noise_inner: torch.Tensor, obs_outer: torch.Tensor, noise_outer: torch.Tensor, inner_lr: float,
-                  form: str = "exact", context_inner: Any = None, context_outer: Any = None,
-                  normalise: bool = False) -> list[torch.Tensor]:
+                  form: str = "exact", context_inner: Any = None, context_outer: Any = None) -> list[torch.Tensor]:
     """∇_ω J(α'(ω)), α'(ω) = α − η ∇_α L(α; ω), one gradient per weighting-network parameter.
 
     ``form="exact"`` differentiates through the virtual step (per state: the paper's
     Σ_s f(s) ∇_ω h(s)); ``form="batch-mean"`` is the released approximation, which uses one
     scalar f̄ = −η (∇_α' J)ᵀ ∇_α mean_s KL_s for all states: ∇_ω ≈ f̄ ∇_ω mean_s h(s).
-    ``normalise``: L normalised by the weights' sum (:func:`inner_loss`; exact form only).
     """
     a_params = {k: v.detach().requires_grad_(True) for k, v in adversary.named_parameters()}
     w_params = dict(weighting.named_parameters())
     kl = objective.kl(adversary, a_params, obs_inner, noise_inner, context_inner)
     if form == "exact":
         weights = functional_call(weighting, w_params, (obs_inner,))
-        grads = torch.autograd.grad(inner_loss(weights, kl, normalise), list(a_params.values()), create_graph=True)
+        grads = torch.autograd.grad(inner_loss(weights, kl), list(a_params.values()), create_graph=True)
         virtual = {k: p - inner_lr * g for (k, p), g in zip(a_params.items(), grads)}
         j = objective.outer(adversary, virtual, obs_outer, noise_outer, context_outer)
         return list(torch.autograd.grad(j, list(w_params.values()), allow_unused=True))
-    if form != "batch-mean" or normalise:
-        raise ValueError(f"no hypergradient form '{form}'{' with normalised weights' if normalise else ''}")
+    if form != "batch-mean":
+        raise ValueError(f"no hypergradient form '{form}'")
     with torch.no_grad():
         weights = weighting(obs_inner)
     grads = torch.autograd.grad(inner_loss(weights, kl), list(a_params.values()), retain_graph=True)

@@ -40,7 +40,6 @@ from rat.attacks.losses import (
     Adversary,
     Imitation,
     WeightingNetwork,
-    gaussian_kl,
     hypergradient,
     inner_loss,
     intention_gaussian,
@@ -62,9 +61,8 @@ from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_json
 from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence, prepared
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
-REFINE_LOSSES = ("l2", "kl", "q", "l2-or-q")  #: what refinement at attack time minimises (RATConfig.refine_loss)
+REFINE_LOSSES = ("l2", "q", "l2-or-q")  #: what refinement at attack time minimises (RATConfig.refine_loss)
 CRITIC_LOSSES = ("q", "l2-or-q")  #: the refinement losses that need π_θ's critic
-ANCHORS = ("clean", "attacked")  #: which victim action the intention anchor pulls towards (RATConfig.anchor_to)
 
 
 def check_refine_loss(loss: str) -> None:
@@ -92,10 +90,8 @@ class RATConfig:
     victim_std: float = 1.0  #: σ_v of the perturbed policy N(μ_ν(s̃), σ_v²)
     kl_form: str = "exact"  #: "exact" Gaussian KL, or "released"
     hypergradient: str = "exact"  #: "exact" per-state hypergradient, or "batch-mean" (released)
-    weighting_norm: str = "none"  #: "none": mean_s h(s)·KL_s (the paper's); "batch": Σ h·KL / Σ h, only ratios count
     ablation: str = "none"  #: none, no-weighting, no-combined, no-intention
     horizon: int | None = None  #: episode length H of the combined behaviour policy's switch (None: the env's time limit)
-    from_reset: float = 0.0  #: share of episodes in which π_θ acts from the first step (h = 0), beside h ~ U{0..H−1}
     eval_every: int = 10_000  #: steps between attack evaluations
     eval_episodes: int = 10  #: episodes per evaluation during training
     final_eval_episodes: int = 30  #: episodes of the final evaluation (the paper's 30)
@@ -105,10 +101,8 @@ class RATConfig:
     checkpoint_every: int = 10_000  #: a checkpoint at the first episode end after this many steps
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
-    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap; "kl", the adversary's own loss; "q", −Q_φ; "l2-or-q": l2, and −Q_φ where l2 leaves a gap above refine_switch_gap
+    refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap; "q", −Q_φ; "l2-or-q": l2, and −Q_φ where l2 leaves a gap above refine_switch_gap
     refine_switch_gap: float = 1.0  #: refine_loss="l2-or-q": the gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ above which an observation is refined by −Q_φ
-    intention_anchor: float = 0.0  #: λ: π_θ learns from r̂ − λ‖a − μ_ν(s)‖², near the victim's clean action (0: off)
-    anchor_to: str = "clean"  #: the anchor's action: the victim's "clean" μ_ν(s), or "attacked" μ_ν(s + εΔ(s)) under the current adversary
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
@@ -125,28 +119,11 @@ class RATConfig:
             raise RatError("select=reward scores snapshots with r̂, which an oracle run does not learn; use select=last")
         if self.kl_form not in ("exact", "released") or self.hypergradient not in ("exact", "batch-mean"):
             raise RatError("kl-form must be exact or released, hypergradient exact or batch-mean")
-        if self.weighting_norm not in ("none", "batch"):
-            raise RatError(f"weighting-norm must be none or batch, got '{self.weighting_norm}'")
-        if self.weighting_norm == "batch" and self.hypergradient == "batch-mean":
-            raise RatError("weighting-norm=batch needs hypergradient=exact: the batch-mean approximation moves only "
-                           "the weights' mean, which normalised weights ignore")
         check_refine_loss(self.refine_loss)
         if self.refine_switch_gap < 0:
             raise RatError(f"refine-switch-gap must be ≥ 0, got {self.refine_switch_gap}")
         if self.refine_steps < 0 or self.refine_lr <= 0:
             raise RatError(f"refine-steps must be ≥ 0 and refine-lr positive, got {self.refine_steps} and {self.refine_lr}")
-        if not 0 <= self.from_reset <= 1:
-            raise RatError(f"from-reset is a share of episodes, between 0 and 1; got {self.from_reset}")
-        if self.from_reset and self.ablation in ("no-combined", "no-intention"):
-            raise RatError(f"from-reset shapes the combined behaviour policy, which the {self.ablation} ablation "
-                           "replaces; drop one of the two")
-        if self.intention_anchor < 0:
-            raise RatError(f"intention-anchor must be ≥ 0, got {self.intention_anchor}")
-        if self.anchor_to not in ANCHORS:
-            raise RatError(f"anchor-to must be {' or '.join(ANCHORS)}, got '{self.anchor_to}'")
-        if self.intention_anchor and self.pebble.oracle:
-            raise RatError("intention-anchor shapes the learned reward r̂, which an oracle run does not learn; "
-                           "leave it at 0 for an oracle run")
         if self.refine_steps and self.ablation == "no-intention":
             raise RatError("refine-steps refines Δ towards π_θ, which the no-intention ablation does not imitate; "
                            "drop one of the two")
@@ -167,18 +144,15 @@ class CombinedBehaviourPolicy:
     """Who acts at each episode step: the perturbed victim before a switch step h, π_θ from h on.
 
     h ~ U{0, …, H−1} is drawn at every episode start (``"combined"``); ``"intention"`` and
-    ``"victim"`` fix h = 0 and h = H. With ``from_reset`` p > 0 (a departure, ``docs/design.md`` §6),
-    a combined episode starts with π_θ (h = 0) with probability p, so that π_θ also learns the
-    behaviour from the states a victim starts in — those an attack must steer from.
+    ``"victim"`` fix h = 0 and h = H.
     """
 
-    def __init__(self, horizon: int, mode: str = "combined", from_reset: float = 0.0):
-        self.horizon, self.mode, self.from_reset, self.switch = horizon, mode, from_reset, 0
+    def __init__(self, horizon: int, mode: str = "combined"):
+        self.horizon, self.mode, self.switch = horizon, mode, 0
 
     def start_episode(self, rng: np.random.Generator) -> None:
         if self.mode == "combined":
-            # p = 0 draws nothing extra, so a run without the option keeps the paper's random stream
-            self.switch = 0 if self.from_reset and rng.random() < self.from_reset else int(rng.integers(0, self.horizon))
+            self.switch = int(rng.integers(0, self.horizon))
         else:
             self.switch = {"intention": 0, "victim": self.horizon}[self.mode]
 
@@ -233,9 +207,7 @@ class RefinedAttack:
 
     From the network's Δ, ``steps`` Adam steps on Δ itself (through tanh, so Δ stays in (−1, 1)^d and
     the perturbation in the ball) minimise this one state's imitation loss: ``loss="l2"``, the squared
-    gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖², every action dimension alike; ``loss="kl"``, the adversary's own
-    training loss at this state, KL(N(μ_ν(s̃), σ_v²) ‖ π_θ(s)) (``victim_std``, ``kl_form``), which weighs
-    each dimension by π_θ's confidence in it; ``loss="q"``, the paper's outer objective at this state,
+    gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖², every action dimension alike; ``loss="q"``, the paper's outer objective at this state,
     −min Q_φ(s, μ_ν(s̃)) with π_θ's critic (``critic``): where π_θ's action lies beyond what the ball can make
     the victim take, the action within reach that π_θ's critic values most, rather than the one nearest π_θ's
     (a departure; ``docs/design.md`` §10); ``loss="l2-or-q"``, ``l2``, then ``q`` at the observations where ``l2``
@@ -258,18 +230,17 @@ class RefinedAttack:
 
     def __init__(self, adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
                  steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
-                 victim_std: float = 1.0, kl_form: str = "exact", critic: TwinCritic | None = None,
-                 switch_gap: float = RATConfig.refine_switch_gap):
+                 critic: TwinCritic | None = None, switch_gap: float = RATConfig.refine_switch_gap):
         check_refine_loss(loss)
         if switch_gap < 0:
             raise RatError(f"refine-switch-gap must be ≥ 0, got {switch_gap}")
         if loss in CRITIC_LOSSES and critic is None:
             raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and none was given; give the critic saved with "
-                           "the adversary, or refine with 'l2' or 'kl'")
+                           "the adversary, or refine with 'l2'")
         self.adversary, self.intention, self.victim, self.threat = adversary, intention, victim, threat
         self.critic = critic
         self.steps, self.lr, self.gaps, self.loss = steps, lr, gaps, loss
-        self.victim_std, self.kl_form, self.switch_gap = victim_std, kl_form, switch_gap
+        self.switch_gap = switch_gap
         self.device = next(adversary.parameters()).device
         self.previous: dict[int, torch.Tensor] = {}  # per episode slot: the last Δ chosen there, before tanh
         self.contexts: dict[int, object] | None = {} if is_sequence(victim) else None  # per slot: the victim's
@@ -300,8 +271,6 @@ class RefinedAttack:
                 context, loss: str) -> torch.Tensor:
         """Each row's ``loss`` (one per observation; ``context``: a sequence victim's, one row each)."""
         action = self._action(s, raw, context)
-        if loss == "kl":
-            return gaussian_kl(action, self.victim_std, mean, log_std, self.kl_form)
         if loss == "q":
             return -torch.min(*self.critic(s, action))
         return (action - mean).pow(2).sum(-1)
@@ -372,12 +341,11 @@ refined_function = RefinedAttack  # the name callers know: the adversary's Δ, r
 
 
 def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, weighting: WeightingNetwork | None,
-                     objective: Imitation, obs: torch.Tensor, ablation: str = "none", context=None,
-                     normalise: bool = False) -> dict[str, float]:
+                     objective: Imitation, obs: torch.Tensor, ablation: str = "none", context=None) -> dict[str, float]:
     """One inner-level step: only the adversary's parameters receive a gradient and change.
 
-    Minimises the weighted KL to the intention policy (weights 1 without a weighting network;
-    ``normalise``: by their sum), or, for the ``no-intention`` ablation, the outer loss itself.
+    Minimises the weighted KL to the intention policy (weights 1 without a weighting network), or, for the
+    ``no-intention`` ablation, the outer loss itself.
     ``context``: a sequence victim's, per state.
     """
     noise = torch.randn_like(obs)
@@ -386,7 +354,7 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
     else:
         with torch.no_grad():
             weights = weighting(obs) if weighting is not None else torch.ones(len(obs), device=obs.device)
-        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise, context), normalise)
+        loss = inner_loss(weights, objective.kl(adversary, None, obs, noise, context))
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=list(adversary.parameters()))  # nothing else may accumulate a gradient
     optimizer.step()
@@ -395,11 +363,10 @@ def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, wei
 
 def weighting_update(weighting: WeightingNetwork, optimizer: torch.optim.Optimizer, adversary: Adversary,
                      objective: Imitation, obs_inner: torch.Tensor, obs_outer: torch.Tensor, inner_lr: float,
-                     form: str = "exact", context_inner=None, context_outer=None,
-                     normalise: bool = False) -> dict[str, float]:
+                     form: str = "exact", context_inner=None, context_outer=None) -> dict[str, float]:
     """One outer-level step: the hypergradient moves the weighting network, and nothing else."""
     grads = hypergradient(objective, adversary, weighting, obs_inner, torch.randn_like(obs_inner), obs_outer,
-                          torch.randn_like(obs_outer), inner_lr, form, context_inner, context_outer, normalise)
+                          torch.randn_like(obs_outer), inner_lr, form, context_inner, context_outer)
     optimizer.zero_grad(set_to_none=True)
     for p, g in zip(weighting.parameters(), grads):
         p.grad = None if g is None else g.detach()
@@ -444,7 +411,7 @@ class RATTrainer:
         self.adversary_opt = torch.optim.Adam(self.adversary.parameters(), lr=cfg.adversary_lr)
         self.weighting_opt = torch.optim.Adam(self.weighting.parameters(), lr=cfg.weighting_lr)
         mode = {"no-combined": "intention", "no-intention": "victim"}.get(cfg.ablation, "combined")
-        self.behaviour = CombinedBehaviourPolicy(cfg.horizon or episode_length(env), mode, cfg.from_reset)
+        self.behaviour = CombinedBehaviourPolicy(cfg.horizon or episode_length(env), mode)
         self.use_weighting = cfg.ablation not in ("no-weighting", "no-intention")  # no-combined keeps h_ω
         self.counters = {"adversary_updates": 0, "weighting_updates": 0}
         self.best: dict | None = None  # imitate="best": frozen copies of π_θ's actor and critic, its temperature
@@ -455,21 +422,6 @@ class RATTrainer:
         # a sequence victim's context at each stored state, row for row (a run never stores more than its steps):
         capacity = min(self.learner.buffer.capacity, cfg.total_steps)
         self.contexts = np.zeros((capacity, self.victim.context_size), np.float32) if self.sequence else None
-        if cfg.intention_anchor:
-            self.learner.reward_shaping = self.anchor
-
-    @torch.no_grad()
-    def anchor(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
-        """−λ‖a − μ_ν(s)‖², per row: how far π_θ's action lies from the clean victim's, which the ball surrounds
-        (a departure, off by default: π_θ is pulled towards actions the victim can be made to take). With
-        ``anchor_to="attacked"`` the anchor is the victim's action under the current adversary's deterministic
-        Δ, μ_ν(s + εΔ(s)): what the attack makes of that state now (refreshed whenever the buffer is relabelled)."""
-        obs = torch.as_tensor(np.atleast_2d(obs), dtype=torch.float32, device=self.device)
-        if self.config.anchor_to == "attacked":
-            obs = self.config.threat.perturb(obs, self.adversary(obs))
-        anchor = self.victim.act(obs).cpu().numpy()
-        gap = ((np.atleast_2d(action) - anchor) ** 2).sum(-1)
-        return -self.config.intention_anchor * (gap if np.ndim(action) > 1 else gap[0])
 
     @property
     def step(self) -> int:
@@ -563,15 +515,14 @@ class RATTrainer:
         obs, context = self.last_batch = self.sample_states()
         self.counters["adversary_updates"] += 1
         return adversary_update(self.adversary, self.adversary_opt, self.weighting if self.use_weighting else None,
-                                self.objective(), obs, self.config.ablation, context,
-                                self.config.weighting_norm == "batch")
+                                self.objective(), obs, self.config.ablation, context)
 
     def weighting_step(self) -> dict[str, float]:
         (obs_inner, context_inner), (obs_outer, context_outer) = self.sample_states(), self.sample_states()
         self.counters["weighting_updates"] += 1
         return weighting_update(self.weighting, self.weighting_opt, self.adversary, self.objective(), obs_inner,
                                 obs_outer, self.config.adversary_lr, self.config.hypergradient, context_inner,
-                                context_outer, self.config.weighting_norm == "batch")
+                                context_outer)
 
     # --- evaluation and state ----------------------------------------------------------------------
 
@@ -583,8 +534,7 @@ class RATTrainer:
         if refine and cfg.refine_steps:
             imitated = imitated or IntentionPolicy.of(self.objective())
             return refined_function(self.adversary, imitated.actor, self.victim, cfg.threat, cfg.refine_steps,
-                                    cfg.refine_lr, gaps, loss=cfg.refine_loss, victim_std=cfg.victim_std,
-                                    kl_form=cfg.kl_form, critic=imitated.critic, switch_gap=cfg.refine_switch_gap)
+                                    cfg.refine_lr, gaps, loss=cfg.refine_loss, critic=imitated.critic, switch_gap=cfg.refine_switch_gap)
         return adversary_function(self.adversary)
 
     def evaluate_attack(self, episodes: int, seed: int, video=None, refine: bool = False,
@@ -670,9 +620,6 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     cfg = as_run(cfg, env)  # recorded as used
     task = setup.describe.get("task")
     check_compatible(setup.victim, env, f"task '{task}'" if task else "the environment")
-    if cfg.intention_anchor and is_sequence(setup.victim):
-        raise RatError("intention-anchor needs the victim's clean action at every stored state, which a sequence "
-                       "victim gives only in its context; leave intention_anchor at 0 for this victim")
     run = Run(out, {"rat": cfg, **setup.describe}, tensorboard)  # the dataclass: a later setting at its default resumes
     store = LabelStore(run.dir / "labels.sqlite")
     trainer = RATTrainer(cfg, setup, env, store, run.dir.name, run.dir / "snapshots", setup.labeller)
@@ -858,11 +805,9 @@ def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = 
         imitated = with_checkpoint_critic(imitated, (saved if saved.is_dir() else saved.parent) / "checkpoint")
     if loss in CRITIC_LOSSES and imitated.critic is None:
         raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and '{run}' saved none beside its adversary (older "
-                       "version, and no checkpoint of the same π_θ); refine with 'l2' or 'kl'")
+                       "version, and no checkpoint of the same π_θ); refine with 'l2'")
     return refined_function(adversary, imitated.actor, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
-                            cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss,
-                            victim_std=cfg.get("victim_std", RATConfig.victim_std),
-                            kl_form=cfg.get("kl_form", RATConfig.kl_form), critic=imitated.critic,
+                            cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss, critic=imitated.critic,
                             switch_gap=cfg.get("refine_switch_gap", RATConfig.refine_switch_gap)
                             if switch_gap is None else switch_gap)
 

@@ -20,7 +20,6 @@ Every label goes to a :class:`~rat.preferences.store.LabelStore` as it arrives.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,7 +64,6 @@ class PebbleConfig:
     updates_per_step: float = 1.0  #: SAC updates per environment step (0.5: one every other step; 2: two a step)
     buffer_capacity: int = 1_000_000  #: replay buffer size
     oracle: bool = False  #: learn from the true target reward instead of labels (an upper bound; no queries)
-    normalize_reward: bool = False  #: standardise r̂ over the replay buffer at every round (mean 0, std 1)
 
     def __post_init__(self):
         for name in ("seed_steps", "unsupervised_steps", "reset_updates", "updates_per_step"):
@@ -139,9 +137,6 @@ class PebbleLearner:
         self.ensemble = RewardEnsemble(obs_dim, act_dim, config.reward).to(self.device)
         self.entropy_stats = RunningMeanStd()
         self.schedule = config.schedule
-        self.reward_stats = (0.0, 1.0)  # mean and std that r̂ is standardised with (normalize_reward)
-        # a term added to r̂ where SAC learns from it (RAT's intention anchor); queries and scores use r̂ alone
-        self.reward_shaping: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
         self.step = 0  # environment steps observed
         self.asked = 0  # queries counted against the budget
         self.round = 0  # query rounds done
@@ -264,20 +259,12 @@ class PebbleLearner:
             return {}
         p = labels.pairs
         metrics = self.ensemble.train_round(p.obs0, p.act0, p.obs1, p.act1, labels.y, self.rng)
-        if self.config.normalize_reward and len(self.buffer):
-            n = len(self.buffer)
-            raw = self.ensemble.r_hat(self.buffer.obs[:n], self.buffer.action[:n])
-            self.reward_stats = (float(raw.mean()), float(max(raw.std(), 1e-6)))
-            metrics |= {"reward_mean": self.reward_stats[0], "reward_std": self.reward_stats[1]}
         self.buffer.relabel(lambda o, a, _: self.learned_reward(o, a))
         return metrics
 
     def learned_reward(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
-        """r̂ as the policy is trained on it: the ensemble mean, standardised when ``normalize_reward``, plus
-        ``reward_shaping`` when one is set."""
-        mean, std = self.reward_stats
-        reward = (self.ensemble.r_hat(obs, action) - mean) / std
-        return reward if self.reward_shaping is None else reward + self.reward_shaping(obs, action)
+        """r̂ as the policy is trained on it: the ensemble's mean."""
+        return self.ensemble.r_hat(obs, action)
 
     # --- checkpoints ----------------------------------------------------------------------------
 
@@ -288,7 +275,6 @@ class PebbleLearner:
             "buffer": self.buffer.state_dict(), "history": self.history.state_dict(),
             "entropy_stats": self.entropy_stats.state_dict(),
             "counters": {"step": self.step, "asked": self.asked, "round": self.round},
-            "reward_stats": np.asarray(self.reward_stats, np.float64),
         }
 
     def checkpoint_meta(self) -> dict:
@@ -312,5 +298,3 @@ class PebbleLearner:
         self.entropy_stats.load_state_dict(state["entropy_stats"])
         c = state["counters"]
         self.step, self.asked, self.round = int(c["step"]), int(c["asked"]), int(c["round"])
-        if "reward_stats" in state:  # older checkpoints: r̂ was never standardised
-            self.reward_stats = tuple(float(x) for x in np.asarray(state["reward_stats"]))
