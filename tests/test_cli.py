@@ -32,6 +32,26 @@ def test_listings(capsys):
     assert code == 0 and "reach" in out and "opposite" in out
 
 
+def test_list_presets_prints_what_each_preset_sets(capsys):
+    import json
+    from dataclasses import asdict
+
+    from rat.configs import with_values
+    from rat.experiments.presets import ppo_preset, rat_config
+
+    code, out, _ = run(capsys, "list", "presets", "--json")
+    table = json.loads(out)
+    assert code == 0 and set(table) == {"cpu", "paper", "smoke"}
+    for preset, parts in table.items():
+        for scenario, values in parts["rat"].items():
+            config = rat_config(preset, target="reach" if scenario == "manipulation" else "opposite")
+            assert with_values(config, values) == config  # every value printed is one the preset sets
+        assert asdict(ppo_preset(preset)).items() >= parts["ppo"].items()
+    assert table["cpu"]["rat"]["manipulation"]["refine_steps"] == 50 and "refine_steps" not in table["paper"]["rat"]["manipulation"]
+    code, out, _ = run(capsys, "list", "presets")
+    assert code == 0 and "--preset smoke" in out and "rat robust train: agent_steps=2000" in out
+
+
 @pytest.mark.slow
 def test_victim_eval_reports_success_with_an_interval_and_writes_a_video(capsys, tmp_path):
     video = tmp_path / "episode.mp4"

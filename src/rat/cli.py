@@ -189,6 +189,36 @@ def list_attacks() -> None:
         click.echo(f"{a.name:<8} [{', '.join(a.rewards)}] {a.description}{settings}")
 
 
+@list_group.command("presets")
+@click.option("--json", "as_json", is_flag=True)
+def list_presets(as_json: bool) -> None:
+    """What each --preset sets: RAT's settings per scenario (beyond the dataclasses' defaults), PPO's, and robust
+    training's. RAT's cpu and smoke presets also spread the label budget over equal rounds (pebble.per_round)."""
+    from dataclasses import asdict
+
+    from rat.attacks.rl import PPOConfig
+    from rat.experiments.presets import PRESETS, SCENARIOS, ppo_preset, preset_values
+    from rat.robust.trainer import SMOKE
+
+    ppo_defaults = asdict(PPOConfig())
+    table = {preset: {"rat": {s: preset_values(preset, "reach" if s == "manipulation" else "opposite")
+                              for s in SCENARIOS},
+                      "ppo": {k: v for k, v in asdict(ppo_preset(preset)).items() if v != ppo_defaults[k]}}
+             for preset in PRESETS}
+    table["smoke"]["robust"], table["cpu"]["robust"] = SMOKE, {}
+    if as_json:
+        click.echo(json.dumps(table, indent=1))
+        return
+    for preset, parts in table.items():
+        click.echo(f"--preset {preset}")
+        for scenario, values in parts["rat"].items():
+            click.echo(f"  rat, {scenario}: " + ", ".join(f"{k}={v}" for k, v in values.items()))
+        click.echo("  sa-rl, pa-ad (PPO): " + (", ".join(f"{k}={v}" for k, v in parts["ppo"].items()) or "defaults"))
+        if "robust" in parts:
+            click.echo("  rat robust train: " + (", ".join(f"{k}={v}" for k, v in parts["robust"].items())
+                                                 or "the RobustConfig defaults"))
+
+
 # --- victims ---------------------------------------------------------------------------------------
 
 

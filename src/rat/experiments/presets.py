@@ -17,24 +17,58 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rat.attacks.rat import RATConfig
 from rat.attacks.rl import PPOConfig
+from rat.configs import with_values
 from rat.errors import RatError
 from rat.experiments.paper import PAPER_OPPOSITE_LABELS
 from rat.preferences.pebble import PebbleConfig
-from rat.preferences.reward_model import RewardModelConfig
 
 if TYPE_CHECKING:
     from rat.experiments.table1 import Cell
 
 PRESETS = ("cpu", "paper", "smoke")  #: presets of a single attack
+SCENARIOS = ("manipulation", "opposite")  #: the reach target; every other target
 
-# smoke: minutes, not results
+#: Each preset's RAT settings as data: dotted fields of :class:`RATConfig`, for every scenario (``any``) and for
+#: one. Two values are not data but a rule, applied after: the ``cpu`` and ``smoke`` presets spend the label
+#: budget in equal rounds (``pebble.per_round``) from the first round until ``spend_by`` of the run.
+#: ``rat list presets`` prints this table. Where each departure from the paper was measured: the comments.
+RAT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    # The paper's settings (10⁶ environment steps per learner, batch 1024, 128 queries every 5,000 steps).
+    "paper": {"any": {"total_steps": 1_000_000}},
+    "cpu": {
+        # Departures for a CPU: 5×10⁴ steps, SAC and adversary batches of 256; reward rounds capped (30 epochs,
+        # 400 updates a member), since each round trains on every label so far (9,000 labels: 27 minutes in all
+        # with the cap; benchmarks/strength.md). bf16 and held-out reward rounds are cheaper (benchmarks/speed.md)
+        # but not the default: the main job's seed 0 made 10.0% with them, 100% without.
+        # Keep the snapshot whose attack the final r̂ scores best (short PEBBLE runs are not monotone, and the
+        # attacker judges its attack only through r̂), and imitate π_θ as kept at the last evaluation: the main
+        # job's last adversary made 86.7 / 76.7 / 100% with it, 13.3 / 10.0 / 46.7% without (strength.md).
+        "any": {"total_steps": 50_000, "adversary_batch": 256, "select": "reward", "imitate": "best",
+                "pebble.sac.batch_size": 256, "pebble.reward.max_epochs": 30, "pebble.reward.max_updates": 400},
+        # Measured on 3 seeds of the SAC faucet victim's row (strength.md, "Queries from recent episodes only",
+        # and "Refining by l2, and by π_θ's critic where l2 falls short"): r̂'s inputs standardised, queries from
+        # the last 20 episodes, the adversary imitating π_θ as it moves, the last adversary kept, Δ refined 50
+        # steps by l2 and by π_θ's critic where l2 leaves a gap above 1: 100 / 96.7 / 96.7%.
+        "manipulation": {"pebble.max_episodes": 20, "pebble.reward.normalize_inputs": True, "select": "last",
+                         "imitate": "current", "refine_steps": 50, "refine_loss": "l2-or-q"},
+    },
+    # Minutes, not results: 3,000 steps, 40 labels after a 1,000-step warm-up.
+    "smoke": {"any": {"total_steps": 3_000, "adversary_batch": 256, "select": "reward", "imitate": "best",
+                      "pebble.sac.batch_size": 256, "pebble.reward.max_epochs": 30, "pebble.reward.max_updates": 400,
+                      "pebble.budget": 40, "pebble.seed_steps": 500, "pebble.unsupervised_steps": 500,
+                      "pebble.feedback_every": 1_000, "eval_every": 1_000, "eval_episodes": 1,
+                      "final_eval_episodes": 2}},
+}
+#: The released schedule of the weighting network, every preset: manipulation vs opposite behaviours.
+SCENARIO_SETTINGS = {"manipulation": {"weighting_every": 1000}, "opposite": {"weighting_every": 2000}}
+
+# smoke: minutes, not results (the PPO and grid presets read these)
 SMOKE_STEPS = {"rat": 3_000, "ppo": 2_048}
 SMOKE_LABELS = 40
-SMOKE_PEBBLE = {"seed_steps": 500, "unsupervised_steps": 500, "feedback_every": 1_000}
 SMOKE_EVALUATION = {"eval_every": 1_000, "eval_episodes": 1, "final_eval_episodes": 2}
 
 
@@ -43,63 +77,42 @@ def _check_preset(preset: str) -> None:
         raise RatError(f"unknown preset '{preset}'; use one of: {', '.join(PRESETS)}")
 
 
+def scenario_of(target: str) -> str:
+    return "manipulation" if target == "reach" else "opposite"
+
+
+def preset_values(preset: str, target: str = "reach") -> dict[str, Any]:
+    """The dotted RAT settings preset ``preset`` gives a run towards ``target`` (before the budget's rounds)."""
+    _check_preset(preset)
+    scenario = scenario_of(target)
+    table = RAT_PRESETS[preset]
+    return {**SCENARIO_SETTINGS[scenario], **table["any"], **table.get(scenario, {})}
+
+
 def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None = None, target: str = "reach",
                pebble_overrides: dict | None = None, spend_by: float = 0.9, **overrides) -> RATConfig:
-    """A :class:`RATConfig` from a preset, a label budget (default: the preset's), overrides of PEBBLE's
-    fields (the warm-up, say; applied before the preset sizes its query rounds) and of any RAT field.
+    """A :class:`RATConfig` from a preset (:data:`RAT_PRESETS`), a label budget (default: the preset's), overrides
+    of PEBBLE's fields (the warm-up, say; applied before the budget is spread over rounds) and of any RAT field.
 
     The ``cpu`` and ``smoke`` presets spend the budget in equal rounds every ``feedback_every`` steps
     from the first round until ``spend_by`` of the run (the last round may be smaller).
     """
     if not 0 < spend_by <= 1:
         raise RatError(f"spend-by must lie in (0, 1], got {spend_by}")
-    _check_preset(preset)
-    pebble_overrides = {**(SMOKE_PEBBLE if preset == "smoke" else {}), **(pebble_overrides or {})}
-    weighting_every = 1000 if target == "reach" else 2000  # the released schedule: manipulation vs opposite
-    if preset == "paper":
-        pebble = replace(PebbleConfig(), **pebble_overrides)
-        settings = dict(total_steps=steps or 1_000_000, weighting_every=weighting_every,
-                        pebble=replace(pebble, budget=pebble.budget if budget is None else budget))
-        return RATConfig(**(settings | overrides))
-    default = PebbleConfig()
-    # Departure for a CPU: reward rounds capped (30 epochs, 400 updates a member), since each round trains
-    # on every label so far; budgets up to ~1,700 labels stay at 30 epochs. The paper's 9,000 labels cost
-    # 27 minutes in all with the cap (intention policy alone, reach: 93.3%; benchmarks/strength.md).
-    # bf16 and held-out reward rounds (--set pebble.sac.precision=bf16, pebble.reward.precision=bf16,
-    # pebble.reward.holdout=0.1) are cheaper (benchmarks/speed.md) but not the default: the main job's seed 0
-    # made 10.0% with them, 100% without.
-    pebble = replace(default, sac=replace(default.sac, batch_size=256),
-                     reward=RewardModelConfig(max_epochs=30, max_updates=400))
-    # Departure for the manipulation scenario (the reach target), measured on 3 seeds of the SAC faucet
-    # victim's row (benchmarks/strength.md, "Queries from recent episodes only"): r̂'s inputs standardised,
-    # queries drawn from the last 20 episodes (PEBBLE's 100 are the whole of a 5×10⁴-step run), the
-    # adversary imitating π_θ as it moves, the last adversary kept and its Δ refined 50 steps towards π_θ:
-    # 100 / 100 / 56.7%, where the preset's settings before made 20–50% with the kept network's Δ.
-    manipulation = preset == "cpu" and target == "reach"
-    if manipulation:
-        pebble = replace(pebble, max_episodes=20, reward=replace(pebble.reward, normalize_inputs=True))
-    pebble = replace(pebble, **pebble_overrides)
-    budget = (SMOKE_LABELS if preset == "smoke" else default.budget) if budget is None else budget
-    total = steps or (SMOKE_STEPS["rat"] if preset == "smoke" else 50_000)
-    first, last = pebble.warm_up, max(pebble.warm_up, int(spend_by * total))
-    rounds = (last - first) // pebble.feedback_every + 1
-    per_round = pebble_overrides.get("per_round") or max(1, -(-budget // rounds))  # ceil: spent by `spend_by`
-    pebble = replace(pebble, budget=budget, per_round=per_round)
-    # Departure: keep the snapshot whose attack the final r̂ scores best (see RATConfig.select); short
-    # CPU runs of PEBBLE are not monotone, and the attacker can judge its own attack only through r̂.
-    # Departure, measured on 3 seeds (benchmarks/strength.md): imitate π_θ as kept at the last evaluation
-    # (the better of it and the previous one under r̂), not π_θ as it moves with every update. The main
-    # job's last adversary: 86.7 / 76.7 / 100% with it, 13.3 / 10.0 / 46.7% without.
-    settings = dict(total_steps=total, adversary_batch=256, weighting_every=weighting_every, pebble=pebble,
-                    select="reward", imitate="best") | (SMOKE_EVALUATION if preset == "smoke" else {})
-    if manipulation:
-        # Departure, measured on the SAC faucet and drawer victims' rows, 3 seeds each (benchmarks/strength.md,
-        # "Refining by l2, and by π_θ's critic where l2 falls short"): Δ refined by l2, then by π_θ's critic
-        # where l2 leaves a gap above 1: faucet 100 / 96.7 / 96.7% (l2 alone: 100 / 100 / 56.7%), drawer at
-        # 10⁵ steps 96.7 / 86.7 / 60.0% (93.3 / 33.3 / 3.3%); on six runs outside those its threshold came from
-        # 112 vs 104 of 180 episodes (p = 0.18: not worse, not shown better). refine_loss="l2" is one --set away.
-        settings |= dict(select="last", imitate="current", refine_steps=50, refine_loss="l2-or-q")
-    return RATConfig(**(settings | overrides))
+    pebble_overrides = pebble_overrides or {}
+    values = preset_values(preset, target) | {f"pebble.{k}": v for k, v in pebble_overrides.items()}
+    if steps:
+        values["total_steps"] = steps
+    if budget is not None:
+        values["pebble.budget"] = budget
+    flat = {k: v for k, v in values.items() if not k.startswith("pebble.")}
+    pebble = with_values(PebbleConfig(), {k[len("pebble."):]: v for k, v in values.items() if k.startswith("pebble.")})
+    if preset != "paper":  # the budget in equal rounds, spent by `spend_by` of the run
+        total = flat.get("total_steps", RATConfig.total_steps)
+        first, last = pebble.warm_up, max(pebble.warm_up, int(spend_by * total))
+        rounds = (last - first) // pebble.feedback_every + 1
+        pebble = replace(pebble, per_round=pebble_overrides.get("per_round") or max(1, -(-pebble.budget // rounds)))
+    return RATConfig(**(flat | {"pebble": pebble} | overrides))
 
 
 def ppo_preset(preset: str = "cpu", steps: int | None = None, **overrides) -> PPOConfig:
