@@ -22,7 +22,7 @@ import torch
 
 from rat.agents.networks import TanhGaussianActor
 from rat.attacks.losses import Adversary
-from rat.attacks.rat import refined_function
+from rat.attacks.refine import refined_function
 from rat.attacks.threat import ThreatModel
 from rat.envs import make_task
 from rat.victims import load_victim

@@ -32,7 +32,8 @@ import torch
 from rat.agents.networks import TanhGaussianActor
 from rat.attacks.evaluation import evaluate_attack
 from rat.attacks.losses import Adversary, Imitation, inner_loss
-from rat.attacks.rat import adversary_function, refined_function
+from rat.attacks.refine import refined_function
+from rat.attacks.saved import adversary_function
 from rat.attacks.threat import ThreatModel
 from rat.checkpoint import load_checkpoint
 from rat.envs import make_task

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rat.attacks.rat import load_saved
+from rat.attacks.saved import load_saved
 from rat.envs import make_task
 from rat.envs.targets import get_target
 from rat.errors import RatError

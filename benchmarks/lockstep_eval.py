@@ -19,7 +19,7 @@ import torch
 
 from rat.attacks.base import saved_attack_meta
 from rat.attacks.evaluation import evaluate_attack
-from rat.attacks.rat import load_rat_attack
+from rat.attacks.saved import load_rat_attack
 from rat.attacks.threat import ThreatModel
 from rat.envs import make_task
 from rat.envs.targets import get_target

@@ -23,7 +23,7 @@ import torch
 
 from rat import seeds
 from rat.attacks import ThreatModel
-from rat.attacks.rat import load_rat_attack
+from rat.attacks.saved import load_rat_attack
 from rat.attacks.threat import AttackedObservation
 from rat.envs.targets import TargetBehaviour
 from rat.errors import RatError

@@ -22,7 +22,7 @@ import torch
 
 from rat import seeds
 from rat.attacks.evaluation import evaluate_attack
-from rat.attacks.rat import load_rat_attack, load_saved
+from rat.attacks.saved import load_rat_attack, load_saved
 from rat.attacks.threat import ThreatModel
 from rat.envs import get_target, make_task
 from rat.errors import RatError

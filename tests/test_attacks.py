@@ -18,7 +18,8 @@ from rat.attacks.losses import (
     inner_loss,
     saturation,
 )
-from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, refined_function, weighting_update
+from rat.attacks.rat import CombinedBehaviourPolicy, RATConfig, adversary_update, weighting_update
+from rat.attacks.refine import refined_function
 from rat.attacks.threat import NORMS, AttackedObservation, ThreatModel, perturbation_norm, project, random_delta
 from rat.errors import RatError
 from rat.victims import ModuleVictim
@@ -387,7 +388,7 @@ class _GoalXReward:
 def test_selection_by_the_learned_reward_keeps_the_snapshot_it_scores_best(tmp_path):
     from point_env import point_victim
 
-    from rat.attacks.rat import learned_return, select_by_learned_reward
+    from rat.attacks.saved import learned_return, select_by_learned_reward
     from rat.checkpoint import save_checkpoint
 
     cfg = RATConfig(epsilon=0.1, eval_episodes=3)
@@ -528,21 +529,3 @@ def test_the_refine_choice_script_records_an_attacked_episode_as_the_teacher_see
     assert not ok0.any() and ok1.any() and r1.sum() > r0.sum()
     np.testing.assert_allclose(o1[1, :2], o1[0, :2] + 0.05 * np.clip(a1[0], -1, 1))  # the true state moved by the action
 
-
-def test_an_old_saved_pi_theta_takes_the_critic_beside_it_in_the_runs_checkpoint_live_or_kept(tmp_path):
-    from rat.attacks.rat import IntentionPolicy, RATTrainer, with_checkpoint_critic
-    from rat.checkpoint import save_checkpoint
-
-    torch.manual_seed(0)
-    (live, live_critic), (kept, kept_critic) = [(TanhGaussianActor(4, 2, 8, 1), TwinCritic(4, 2, 8, 1)) for _ in "ab"]
-    agent = {f"actor.{k}": v for k, v in live.state_dict().items()} | \
-        {f"critic.{k}": v for k, v in live_critic.state_dict().items()}
-    state = {"learner": {"agent": agent}, "best": {"actor": kept.state_dict(), "critic": kept_critic.state_dict()}}
-    save_checkpoint(tmp_path / "checkpoint", RATTrainer.kind, state, {"step": 10})
-    obs, action = torch.randn(5, 4), torch.rand(5, 2)
-    for actor, critic in ((live, live_critic), (kept, kept_critic)):  # the live π_θ's critic, or the kept one's
-        found = with_checkpoint_critic(IntentionPolicy(actor), tmp_path / "checkpoint").critic
-        assert torch.equal(found(obs, action)[0], critic(obs, action)[0])
-    stranger = IntentionPolicy(TanhGaussianActor(4, 2, 8, 1))  # a π_θ the checkpoint does not hold: no critic
-    assert with_checkpoint_critic(stranger, tmp_path / "checkpoint").critic is None
-    assert with_checkpoint_critic(IntentionPolicy(live), tmp_path / "none").critic is None  # no checkpoint

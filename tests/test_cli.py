@@ -363,7 +363,7 @@ def test_the_cpu_preset_spends_exactly_the_label_budget_by_the_stated_step(budge
 
 def test_the_eval_commands_refine_loss_choices_are_the_librarys():
     """The CLI keeps its imports light, so it lists the refinement losses itself; they must be the library's."""
-    from rat.attacks.rat import REFINE_LOSSES
+    from rat.attacks.refine import REFINE_LOSSES
     from rat.cli import cli
 
     option = next(p for p in cli.commands["attack"].commands["eval"].params if p.name == "refine_loss")

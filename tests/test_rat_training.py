@@ -132,7 +132,7 @@ def test_imitating_the_best_intention_policy_keeps_it_scores_it_by_r_hat_and_che
 
 @pytest.mark.slow
 def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_networks_attack_beside(tmp_path):
-    from rat.attacks.rat import adversary_function, load_adversary, load_rat_attack
+    from rat.attacks.saved import adversary_function, load_adversary, load_rat_attack
     from rat.checkpoint import save_checkpoint
 
     config = small_config(1000, refine_steps=10, select="reward", eval_episodes=5, final_eval_episodes=10)
@@ -152,7 +152,7 @@ def test_a_refining_run_saves_pi_theta_beside_the_adversary_and_reports_the_netw
                        for n in (500, 1000))
     assert not torch.equal(pi_500["trunk.0.weight"], pi_1000["trunk.0.weight"])  # each snapshot holds its own
     # a snapshot loads as itself (`rat attack eval RUN/snapshots/adversary-500`): its adversary, its π_θ, the run's metadata
-    from rat.attacks.rat import load_saved
+    from rat.attacks.saved import load_saved
 
     snapshot = load_checkpoint(tmp_path / "run" / "snapshots" / "adversary-500")[0]["adversary"]
     adversary_500, imitated_500, meta_500 = load_saved(tmp_path / "run" / "snapshots" / "adversary-500.json")

@@ -192,6 +192,6 @@ def load_attack(run: str | Path, victim: Victim) -> tuple[Perturbation, dict[str
         return attack.load(path.parent, meta, victim), meta
     if method != "rat":
         raise RatError(f"a {method} run saves one attack, '{path.parent}/adversary'; evaluate the run directory")
-    from rat.attacks.rat import load_rat_attack  # RAT keeps more than one (adversary-last)
+    from rat.attacks.saved import load_rat_attack  # RAT keeps more than one (adversary-last)
 
     return load_rat_attack(path, victim), meta

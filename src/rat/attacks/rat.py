@@ -24,7 +24,6 @@ had there, packed beside the replay buffer, so the adversary trains on states *i
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -33,8 +32,7 @@ import numpy as np
 import torch
 
 from rat import seeds
-from rat.agents.networks import TanhGaussianActor, TwinCritic
-from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack, saved_attack_meta, saved_attack_path
+from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack
 from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
 from rat.attacks.losses import (
     Adversary,
@@ -42,11 +40,18 @@ from rat.attacks.losses import (
     WeightingNetwork,
     hypergradient,
     inner_loss,
-    intention_gaussian,
     saturation,
 )
-from rat.attacks.threat import AttackedObservation, Perturbation, ThreatModel
-from rat.checkpoint import load_checkpoint, save_checkpoint
+from rat.attacks.refine import REFINE_SWITCH_GAP, check_refine_loss, refined_function
+from rat.attacks.saved import (
+    IntentionPolicy,
+    adversary_function,
+    load_rat_attack,
+    policy_learned_return,
+    select_by_learned_reward,
+)
+from rat.attacks.threat import Perturbation, ThreatModel
+from rat.checkpoint import save_checkpoint
 from rat.device import resolve_device
 from rat.envs.physics import physics_of
 from rat.envs.tasks import episode_length
@@ -58,19 +63,9 @@ from rat.preferences.pebble import PebbleConfig, PebbleLearner
 from rat.preferences.store import LabelStore
 from rat.reports import AttackReport
 from rat.runs import Run, restore_rng_state, rng_state, seed_everything, to_jsonable
-from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence, prepared
+from rat.victims.base import Victim, VictimPolicy, check_compatible, is_sequence
 
 ABLATIONS = ("none", "no-weighting", "no-combined", "no-intention")
-REFINE_LOSSES = ("l2", "q", "l2-or-q")  #: what refinement at attack time minimises (RATConfig.refine_loss)
-CRITIC_LOSSES = ("q", "l2-or-q")  #: the refinement losses that need π_θ's critic
-
-
-def check_refine_loss(loss: str) -> None:
-    """One line naming the choices, for a refinement loss that is not one of them."""
-    if loss not in REFINE_LOSSES:
-        raise RatError(f"refine-loss must be one of {', '.join(REFINE_LOSSES)}, got '{loss}'")
-
-
 @dataclass(frozen=True)
 class RATConfig:
     """A RAT attack (defaults: the paper's, with the released schedule of ``docs/design.md`` §5)."""
@@ -102,7 +97,7 @@ class RATConfig:
     refine_steps: int = 0  #: Adam steps on Δ per observation towards π_θ's action, when attacking (0: the network's Δ)
     refine_lr: float = 0.1  #: their learning rate (on Δ before tanh)
     refine_loss: str = "l2"  #: what they minimise: "l2", the squared action gap; "q", −Q_φ; "l2-or-q": l2, and −Q_φ where l2 leaves a gap above refine_switch_gap
-    refine_switch_gap: float = 1.0  #: refine_loss="l2-or-q": the gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ above which an observation is refined by −Q_φ
+    refine_switch_gap: float = REFINE_SWITCH_GAP  #: refine_loss="l2-or-q": the gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ above which an observation is refined by −Q_φ
     device: str = "auto"  #: auto (a GPU when torch sees one), cpu or cuda
 
     def __post_init__(self):
@@ -158,186 +153,6 @@ class CombinedBehaviourPolicy:
 
     def victim_acts(self, episode_step: int) -> bool:
         return episode_step < self.switch
-
-
-def adversary_function(adversary: Adversary) -> Perturbation:
-    """The trained adversary's deterministic Δ for one observation (numpy)."""
-    device = next(adversary.parameters()).device
-
-    @torch.no_grad()
-    def delta(obs: np.ndarray) -> np.ndarray:
-        s = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
-        return adversary(s).squeeze(0).double().cpu().numpy()
-
-    return delta
-
-
-@dataclass(frozen=True)
-class IntentionPolicy:
-    """The π_θ an adversary imitated, its actor and its critic Q_φ, as saved beside the adversary: what
-    refinement aims at (``critic`` is None in files saved before it was kept)."""
-
-    actor: TanhGaussianActor
-    critic: TwinCritic | None = None
-
-    @classmethod
-    def of(cls, objective: Imitation) -> IntentionPolicy:
-        return cls(objective.intention, objective.critic)
-
-    @classmethod
-    def from_state(cls, state: dict) -> IntentionPolicy | None:
-        """The π_θ in a saved adversary's state; None where it holds none (an older version's)."""
-        if "intention" not in state:
-            return None
-        actor = TanhGaussianActor.from_state_dict(state["intention"]).requires_grad_(False)
-        critic = state.get("critic")
-        return cls(actor, None if critic is None else
-                   TwinCritic.from_state_dict(critic, actor.obs_dim).requires_grad_(False))
-
-    def state_dict(self) -> dict:
-        critic = {} if self.critic is None else {"critic": self.critic.state_dict()}
-        return {"intention": self.actor.state_dict(), **critic}
-
-    def to(self, device) -> IntentionPolicy:
-        return IntentionPolicy(self.actor.to(device), None if self.critic is None else self.critic.to(device))
-
-
-class RefinedAttack:
-    """The adversary's Δ, refined at every observation towards π_θ's action there (a departure; ``docs/design.md`` §10).
-
-    From the network's Δ, ``steps`` Adam steps on Δ itself (through tanh, so Δ stays in (−1, 1)^d and
-    the perturbation in the ball) minimise this one state's imitation loss: ``loss="l2"``, the squared
-    gap ‖μ_ν(s + ε·P(Δ)) − tanh μ_θ(s)‖², every action dimension alike; ``loss="q"``, the paper's outer objective at this state,
-    −min Q_φ(s, μ_ν(s̃)) with π_θ's critic (``critic``): where π_θ's action lies beyond what the ball can make
-    the victim take, the action within reach that π_θ's critic values most, rather than the one nearest π_θ's
-    (a departure; ``docs/design.md`` §10); ``loss="l2-or-q"``, ``l2``, then ``q`` at the observations where ``l2``
-    leaves a gap above ``switch_gap`` (π_θ's action out of reach). The Δ with the smallest loss seen is used. The steps start
-    from the network's Δ or from the Δ chosen at the episode's previous observation, whichever leaves the
-    smaller loss here (consecutive states are close). It needs what training already does — the victim's
-    gradient and π_θ — and costs ``steps`` forward and backward passes of the victim per observation.
-    A sequence victim acts on its context too: the attack keeps each episode's own, from what it is told of
-    every step (:meth:`observe`: the observation as the victim saw it, the action, the reward), exactly as
-    the victim's keeper does, and refines Δ for the current observation with the context fixed — the past
-    perturbed states stay as they were seen (``docs/design.md`` §9, §10) — so the past runs through the victim
-    once per observation, not once per step (its ``prepare``, where it has one). ``gaps``, if given, receives the
-    gap ‖μ_ν(s̃) − tanh μ_θ(s)‖ left at each observation (whichever loss chose Δ).
-
-    Called with one observation it is a :data:`~rat.attacks.threat.Perturbation`; :meth:`batch` refines the
-    observations of several episodes at once (``slots`` name their episodes), each exactly as alone — Adam
-    acts on every element on its own and each row's loss has only its own Δ — but in one pass of the
-    networks per step, which is what makes evaluating it in lockstep (``evaluate_attack(make_env=...)``) fast.
-    """
-
-    def __init__(self, adversary: Adversary, intention: TanhGaussianActor, victim: Victim, threat: ThreatModel,
-                 steps: int, lr: float = 0.1, gaps: list[float] | None = None, *, loss: str = "l2",
-                 critic: TwinCritic | None = None, switch_gap: float = RATConfig.refine_switch_gap):
-        check_refine_loss(loss)
-        if switch_gap < 0:
-            raise RatError(f"refine-switch-gap must be ≥ 0, got {switch_gap}")
-        if loss in CRITIC_LOSSES and critic is None:
-            raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and none was given; give the critic saved with "
-                           "the adversary, or refine with 'l2'")
-        self.adversary, self.intention, self.victim, self.threat = adversary, intention, victim, threat
-        self.critic = critic
-        self.steps, self.lr, self.gaps, self.loss = steps, lr, gaps, loss
-        self.switch_gap = switch_gap
-        self.device = next(adversary.parameters()).device
-        self.previous: dict[int, torch.Tensor] = {}  # per episode slot: the last Δ chosen there, before tanh
-        self.contexts: dict[int, object] | None = {} if is_sequence(victim) else None  # per slot: the victim's
-
-    def reset(self, slot: int = 0) -> None:
-        """A new episode in ``slot``: its first observation starts from the network's Δ alone."""
-        self.previous.pop(slot, None)
-        if self.contexts is not None:
-            self.contexts[slot] = self.victim.initial_context(1)
-
-    def observe(self, seen: np.ndarray, action: np.ndarray, reward: float, slot: int = 0) -> None:
-        """The step just taken in ``slot``'s episode, for a sequence victim's context (nothing for a memoryless one)."""
-        if self.contexts is None:
-            return
-        row = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32, device=self.device).reshape(1, -1)  # noqa: E731
-        self.contexts[slot] = self.victim.update_context(self._context(slot), row(seen), row(action),
-                                                         torch.tensor([float(reward)]))
-
-    def _context(self, slot: int):
-        if slot not in self.contexts:  # an episode begun without reset()
-            self.contexts[slot] = self.victim.initial_context(1)
-        return self.contexts[slot]
-
-    def _action(self, s: torch.Tensor, raw: torch.Tensor, context) -> torch.Tensor:
-        return self.victim.act(self.threat.perturb(s, torch.tanh(raw)), context)
-
-    def _losses(self, s: torch.Tensor, raw: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor,
-                context, loss: str) -> torch.Tensor:
-        """Each row's ``loss`` (one per observation; ``context``: a sequence victim's, one row each)."""
-        action = self._action(s, raw, context)
-        if loss == "q":
-            return -torch.min(*self.critic(s, action))
-        return (action - mean).pow(2).sum(-1)
-
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        return self.batch(np.asarray(obs)[None], [0])[0]
-
-    @torch.enable_grad()  # its steps follow gradients, even where the caller plays episodes under no_grad
-    def batch(self, obs: np.ndarray, slots: Sequence[int]) -> np.ndarray:
-        """Δ for each row of ``obs [B, d]``; row i continues the episode in ``slots[i]``."""
-        s = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-        mean, log_std = intention_gaussian(self.intention, s)
-        packed = None if self.contexts is None else torch.cat(
-            [self.victim.pack_context(self._context(slot)) for slot in slots])
-
-        def context(rows=slice(None)):  # a sequence victim's contexts of these rows, prepared to act on at every step
-            return None if packed is None else prepared(self.victim, self.victim.unpack_context(packed[rows]))
-
-        rows = list(range(len(s)))
-        best = self._refine(s, mean, log_std, slots, rows, context, "l2" if self.loss == "l2-or-q" else self.loss)
-        if self.loss == "l2-or-q" or self.gaps is not None:
-            with torch.no_grad():
-                gap = (self._action(s, best, context()) - mean).norm(dim=-1)
-        if self.loss == "l2-or-q":  # refined again by π_θ's critic where π_θ's action is out of reach
-            far = [i for i in rows if gap[i] > self.switch_gap]
-            if far:
-                best[far] = self._refine(s, mean, log_std, slots, far, context, "q")
-                with torch.no_grad():
-                    gap[far] = (self._action(s[far], best[far], context(far)) - mean[far]).norm(dim=-1)
-        if self.gaps is not None:
-            self.gaps.extend(gap.tolist())
-        for i, slot in enumerate(slots):
-            self.previous[slot] = best[i:i + 1]
-        return torch.tanh(best).double().cpu().numpy()
-
-    def _refine(self, s: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor, slots: Sequence[int],
-                rows: list[int], context, loss: str) -> torch.Tensor:
-        """Δ before tanh for the batch's ``rows``: ``steps`` Adam steps on ``loss``, from the network's Δ or the
-        Δ chosen at the episode's previous observation, whichever ``loss`` prefers; the best seen."""
-        s, mean, log_std = s[rows], mean[rows], log_std[rows]
-        with torch.no_grad():
-            raw = torch.atanh(self.adversary(s).clamp(-0.999, 0.999))
-            known = [i for i, row in enumerate(rows) if slots[row] in self.previous]
-            if known:  # the previous Δ where it fits this state better (a tie keeps the network's)
-                before = torch.cat([self.previous[slots[rows[i]]] for i in known])
-                theirs = context([rows[i] for i in known])
-                better = self._losses(s[known], before, mean[known], log_std[known], theirs, loss) < \
-                    self._losses(s[known], raw[known], mean[known], log_std[known], theirs, loss)
-                raw[known] = torch.where(better[:, None], before, raw[known])
-        raw.requires_grad_(True)
-        optimizer = torch.optim.Adam([raw], lr=self.lr)
-        best, best_loss = raw.detach().clone(), torch.full((len(s),), float("inf"), device=self.device)
-        theirs = context(rows)
-        for step in range(self.steps + 1):  # the last pass only scores the last step
-            losses = self._losses(s, raw, mean, log_std, theirs, loss)
-            with torch.no_grad():
-                improved = losses < best_loss
-                best = torch.where(improved[:, None], raw, best)
-                best_loss = torch.where(improved, losses, best_loss)
-            if step < self.steps:
-                optimizer.zero_grad(set_to_none=True)
-                losses.sum().backward(inputs=[raw])
-                optimizer.step()
-        return best
-
-
-refined_function = RefinedAttack  # the name callers know: the adversary's Δ, refined at every observation
 
 
 def adversary_update(adversary: Adversary, optimizer: torch.optim.Optimizer, weighting: WeightingNetwork | None,
@@ -673,143 +488,6 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     write_report(run.dir, report)
     store.close()
     return report
-
-
-@torch.no_grad()
-def policy_learned_return(policy: Callable[[np.ndarray], np.ndarray], env: gym.Env, ensemble, episodes: int,
-                          seed: int) -> float:
-    """Mean return under r̂ of ``policy``'s episodes (``obs -> action``; episode ``i`` reset with ``seed + i``).
-
-    r̂ scores the true state (``info["true_obs"]`` under an attack); a policy with ``reset()`` and
-    ``observe(reward)`` (a :class:`~rat.victims.base.VictimPolicy`) is told where episodes start and what happened.
-    """
-    returns = []
-    for episode in range(episodes):
-        obs, info = env.reset(seed=seed + episode)
-        if hasattr(policy, "reset"):
-            policy.reset()
-        total, done = 0.0, False
-        while not done:
-            action = policy(obs)
-            total += float(ensemble.r_hat(np.asarray(info.get("true_obs", obs), np.float32), action))
-            obs, reward, terminated, truncated, info = env.step(action)
-            if hasattr(policy, "observe"):
-                policy.observe(reward)
-            done = terminated or truncated
-        returns.append(total)
-    return float(np.mean(returns))
-
-
-def learned_return(victim: Victim, adversary: Adversary, env: gym.Env, ensemble, threat: ThreatModel, episodes: int,
-                   seed: int) -> float:
-    """Mean return under r̂ of the attacked victim's episodes: how well the attack does, by the attacker's model."""
-    attacked = AttackedObservation(env, adversary_function(adversary), threat)
-    return policy_learned_return(VictimPolicy(victim), attacked, ensemble, episodes, seed)
-
-
-def select_by_learned_reward(snapshots: Path, adversary: Adversary, victim: Victim, ensemble, env: gym.Env,
-                             cfg: RATConfig) -> dict:
-    """Load into ``adversary`` the snapshot (or the last one) whose attack the final r̂ scores highest.
-
-    Every candidate is scored on the same episodes; ties go to the later one. Uses no true reward.
-    Returns the selected step, every candidate's score and, as ``imitated``, the π_θ a selected snapshot
-    imitated, with its critic (None for the last adversary, or a snapshot saved without π_θ).
-    """
-    candidates = {"last": ({k: v.clone() for k, v in adversary.state_dict().items()}, None)}
-    for path in sorted(snapshots.glob("adversary-*.json"), key=lambda p: int(p.stem.split("-")[1])):
-        state = load_checkpoint(path, SNAPSHOT)[0]
-        candidates[path.stem.split("-")[1]] = (state["adversary"], IntentionPolicy.from_state(state))
-    scores = {}
-    for name, (state, _) in candidates.items():
-        adversary.load_state_dict(state)
-        scores[name] = learned_return(victim, adversary, env, ensemble, cfg.threat, cfg.eval_episodes, seeds.SELECTION)
-    order = [n for n in candidates if n != "last"] + ["last"]  # later wins ties
-    best = max(reversed(order), key=lambda n: scores[n])
-    adversary.load_state_dict(candidates[best][0])
-    return {"selected_step": cfg.total_steps if best == "last" else int(best),
-            "learned_returns": {n: round(v, 3) for n, v in scores.items()}, "imitated": candidates[best][1]}
-
-
-def load_adversary(path: str | Path) -> tuple[Adversary, dict]:
-    """An adversary saved by :func:`train_rat` (``<run>/adversary``), with its metadata."""
-    adversary, _, meta = load_saved(path)
-    return adversary, meta
-
-
-def load_saved(path: str | Path) -> tuple[Adversary, IntentionPolicy | None, dict]:
-    """The adversary of ``<run>/adversary`` (or of another saved adversary file, a snapshot
-    ``<run>/snapshots/adversary-<step>`` too), the π_θ it imitated with its critic (None if the run predates
-    saving π_θ) and the metadata."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "adversary"
-    meta = saved_attack_meta(path)
-    state, _ = load_checkpoint(path, SNAPSHOT if "snapshot_step" in meta else "adversary")
-    adversary = Adversary(int(meta["obs_dim"]), int(meta["adversary_hidden"]))
-    adversary.load_state_dict(state["adversary"])
-    adversary.eval().requires_grad_(False)
-    return adversary, IntentionPolicy.from_state(state), meta
-
-
-def with_checkpoint_critic(imitated: IntentionPolicy, checkpoint: Path) -> IntentionPolicy:
-    """``imitated`` with a critic from RAT's training checkpoint ``checkpoint``: the critic beside the π_θ there
-    that is ``imitated``'s — the live one's, or the kept one's (``imitate="best"``) — if either is.
-
-    For files saved before critics were kept beside π_θ: a run's final adversary imitated the π_θ of its
-    last checkpoint whenever it kept the last adversary.
-    """
-    if not checkpoint.with_suffix(".json").exists():
-        return imitated
-    agent, _ = load_checkpoint(checkpoint, RATTrainer.kind, part=("learner", "agent"))
-    pairs = [{part: {k.removeprefix(part + "."): v for k, v in agent.items() if k.startswith(part + ".")}
-              for part in ("actor", "critic")}]
-    try:
-        pairs.append(load_checkpoint(checkpoint, RATTrainer.kind, part=("best",))[0])
-    except RatError:  # no kept π_θ in this run
-        pass
-    mine = imitated.actor.state_dict()
-    for pair in pairs:
-        if all(k in pair["actor"] and torch.equal(pair["actor"][k], v) for k, v in mine.items()):
-            critic = TwinCritic.from_state_dict(pair["critic"], imitated.actor.obs_dim).requires_grad_(False)
-            return replace(imitated, critic=critic)
-    return imitated
-
-
-def load_rat_attack(run: str | Path, victim: Victim, refine_steps: int | None = None,
-                    gaps: list[float] | None = None, refine_loss: str | None = None,
-                    switch_gap: float | None = None) -> Perturbation:
-    """A RAT run's attack, as ``obs -> Δ``: the adversary's Δ, refined towards π_θ by ``refine_steps``
-    Adam steps per observation minimising ``refine_loss``, with ``switch_gap`` as ``l2-or-q``'s threshold
-    (None: as the run was configured; 0 steps: the network's Δ alone). ``gaps``, if given, receives the gap
-    refinement leaves at each observation."""
-    adversary, imitated, meta = load_saved(run)
-    cfg = meta.get("rat", {})
-    steps = cfg.get("refine_steps", 0) if refine_steps is None else refine_steps
-    if steps < 0:
-        raise RatError(f"refine-steps must be ≥ 0, got {steps}")
-    if not steps:
-        if refine_loss is not None or switch_gap is not None:  # asked for, but nothing would be refined: say so
-            what = f"refine-loss '{refine_loss}'" if refine_loss is not None else f"refine-switch-gap {switch_gap}"
-            raise RatError(f"{what} chooses how Δ is refined, and '{run}' refines 0 steps; give --refine-steps N "
-                           "(N > 0) with it")
-        return adversary_function(adversary)
-    if imitated is None:
-        raise RatError(f"the RAT run '{run}' did not save the intention policy beside its adversary (older version); "
-                       "run its `rat attack train` command again to rewrite it, or evaluate without refinement")
-    loss = refine_loss or cfg.get("refine_loss", RATConfig.refine_loss)
-    if switch_gap is not None and loss != "l2-or-q":  # asked for, but no pass would read it
-        raise RatError(f"refine-switch-gap is the threshold of refine-loss 'l2-or-q', and '{run}' is refined by "
-                       f"'{loss}'; give --refine-loss l2-or-q with it, or drop it")
-    if loss in CRITIC_LOSSES and imitated.critic is None:
-        saved = saved_attack_path(run)
-        imitated = with_checkpoint_critic(imitated, (saved if saved.is_dir() else saved.parent) / "checkpoint")
-    if loss in CRITIC_LOSSES and imitated.critic is None:
-        raise RatError(f"refine-loss '{loss}' climbs π_θ's critic, and '{run}' saved none beside its adversary (older "
-                       "version, and no checkpoint of the same π_θ); refine with 'l2'")
-    return refined_function(adversary, imitated.actor, victim, ThreatModel(cfg["epsilon"], cfg["norm"]), steps,
-                            cfg.get("refine_lr", RATConfig.refine_lr), gaps, loss=loss, critic=imitated.critic,
-                            switch_gap=cfg.get("refine_switch_gap", RATConfig.refine_switch_gap)
-                            if switch_gap is None else switch_gap)
 
 
 @register_attack("rat", config=RATConfig, rewards=("labels", "oracle"))

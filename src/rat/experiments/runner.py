@@ -12,7 +12,7 @@ import numpy as np
 
 from rat.attacks.base import AttackSetup, get_attack, load_attack, saved_attack_meta, saved_attack_path
 from rat.attacks.evaluation import evaluate_attack, evaluate_clean
-from rat.attacks.rat import load_rat_attack
+from rat.attacks.saved import load_rat_attack
 from rat.attacks.threat import ThreatModel
 from rat.envs import check_task, get_target, make_task
 from rat.envs.targets import TargetBehaviour
