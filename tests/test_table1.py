@@ -125,7 +125,7 @@ def test_the_cpu_grid_asks_the_papers_label_counts_per_row_unless_told_otherwise
                       ("faucet-close-v3", "manipulation"): 9000, ("faucet-close-v3", "opposite"): 5000,  # faucet-open
                       ("window-close-v3", "manipulation"): 9000, ("window-close-v3", "opposite"): 5000}  # window-open
     assert cpu.labels_for(Cell("dt/halfcheetah-v5", "cheetah-backward", "rat", 0)) == 3000  # a named target
-    old = cpu.with_labels({"manipulation": 3000, "opposite": 1000})  # benchmarks/table1.md's grid
+    old = cpu.with_labels({"manipulation": 3000, "opposite": 1000})  # the first grid of docs/notes/table1-log.md
     assert old.labels_for(Cell("faucet-close-v3", "opposite", "rat", 0)) == 1000
     assert old.labels_for(Cell("drawer-open-v3", "manipulation", "rat", 0)) == 3000
     with pytest.raises(RatError, match="give manipulation=N, opposite=N or target=N"):
@@ -263,3 +263,19 @@ def test_the_curves_mark_each_methods_deployed_attack_beside_its_training_evalua
     stars = [line for line in lines if line.get_marker() == "*" and len(line.get_xdata())]
     assert list(curve[0].get_ydata()) == [0.0, 0.0]
     assert [(list(s.get_xdata()), list(s.get_ydata())) for s in stars] == [([2000], [90.0])]
+
+
+def test_bench_report_regenerates_the_committed_table_byte_for_byte(tmp_path, capsys):
+    import shutil
+    from pathlib import Path
+
+    from rat.cli import main
+
+    committed = Path(__file__).resolve().parent.parent / "benchmarks" / "table1"
+    shutil.copy(committed / "results.csv", tmp_path / "results.csv")
+    assert main(["bench", "report", str(tmp_path)]) == 0
+    assert (tmp_path / "table1.md").read_bytes() == (committed / "table1.md").read_bytes()
+    page = (committed / "table1.md").read_text()
+    assert "| SAC |" in page and "| behaviour clone |" in page  # both kinds of victim, side by side
+    assert main(["bench", "report", str(tmp_path / "empty")]) == 2
+    assert "holds no results.csv" in capsys.readouterr().err

@@ -811,6 +811,21 @@ def bench_table1(ctx, tasks, scenarios, methods, seeds, preset, labels, jobs, ra
         raise RatError(f"{len(result['failed'])} cells failed (tracebacks in their error.txt); fix and re-run to resume")
 
 
+@bench.command("report")
+@click.argument("folder", type=click.Path(path_type=Path))
+def bench_report(folder) -> None:
+    """Regenerate a folder's table from its recorded results alone: table1.md from results.csv (a table-1 grid, or
+    several merged), table3.md from the rows of a table-3 grid."""
+    from rat.experiments.table1 import report_grid
+    from rat.experiments.table3 import finished_rows, write_table3
+
+    if finished_rows(folder):
+        write_table3(folder)
+        click.echo(f"{folder / 'table3.md'}")
+        return
+    click.echo(f"{report_grid(folder)}")
+
+
 @bench.command("table3")
 @click.option("--tasks", default="faucet-close-v3", show_default=True, callback=_csv(str),
               help="tasks with a zoo SAC victim (zoo:<task>@sac), comma-separated; the paper's: door-lock-v3, "

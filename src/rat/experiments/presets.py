@@ -180,7 +180,7 @@ GRID_PRESETS = {
     "paper": GridPreset("paper", "paper", 1_000_000, {"manipulation": 9000, "opposite": 5000}, "paper", 1_000_000,
                         labels_by_row={f"opposite/{t}": n for t, n in PAPER_OPPOSITE_LABELS.items()}),
     # This project's 2-core CPU machine: 5×10⁴ steps per learner, the paper's label counts (a locomotion or
-    # user target: 3,000). The behaviour-clone grid of benchmarks/table1.md ran with --labels
+    # user target: 3,000). The behaviour-clone grid of docs/notes/table1-log.md ran with --labels
     # manipulation=3000,opposite=1000.
     "cpu": GridPreset("cpu", "cpu", 50_000, {"manipulation": 9000, "opposite": 5000, "target": 3000}, "cpu", 50_000,
                       labels_by_row={f"opposite/{t}": n for t, n in PAPER_OPPOSITE_LABELS.items()}),

@@ -425,33 +425,65 @@ def write_reports(out: Path, rows: list[dict], preset: GridPreset) -> None:
         plot_curves(out, task, [r for r in rows if r["task"] == task])
 
 
-def markdown_table(rows: list[dict], preset: GridPreset) -> str:
-    """Table 1's layout: a row per (scenario, task), a column per method; ours (mean ± std, n) / the paper's."""
+def victim_kind(row: dict) -> str:
+    """SAC, behaviour clone, or the victim's method as recorded (a row of a grid predating the record: –)."""
+    method = str(row.get("victim_method") or "")
+    return "SAC" if method.startswith("sac") else "behaviour clone" if method == "bc" else method or "–"
+
+
+def markdown_table(rows: list[dict], preset: GridPreset | None = None) -> str:
+    """Table 1's layout: a row per (scenario, task, victim kind), a column per method; ours (mean ± std, n) / the
+    paper's. The budgets in the header are the rows' own (several where merged grids differ), else ``preset``'s."""
     methods = sorted(set(METHODS) | {r["method"] for r in rows}, key=method_order)
     scenarios = list(SCENARIOS) + sorted({r["scenario"] for r in rows} - set(SCENARIOS))
-    lines = [f"Attack success rate (%), mean ± std over seeds (n), {preset.episodes} episodes per seed; "
-             f"ε = {preset.epsilon} ({preset.norm}, raw observation units); preset `{preset.name}`. "
-             "Each cell: **ours** / paper (v2 tasks, 10⁶ steps). *clean*: the unattacked victim's success at "
-             "the same target, the yardstick every attack must beat.", "",
-             "| scenario | victim task (paper row) | clean | " + " | ".join(METHOD_NAMES.get(m, m) for m in methods)
-             + " |", "| --- | --- | ---: |" + " ---: |" * len(methods)]
+
+    def recorded(key: str, fallback) -> str:
+        values = sorted({str(r[key]) for r in rows if r.get(key) not in (None, "")})
+        return " / ".join(values) if values else str(fallback)
+
+    lines = [f"Attack success rate (%), mean ± std over seeds (n), {recorded('episodes', preset and preset.episodes)} "
+             f"episodes per seed; ε = {recorded('epsilon', preset and preset.epsilon)} "
+             f"({recorded('norm', preset and preset.norm)}, raw observation units); preset "
+             f"`{recorded('preset', preset and preset.name)}`. Each cell: **ours** / paper (v2 tasks, 10⁶ steps). "
+             "*clean*: the unattacked victim's success at the same target, the yardstick every attack must beat.", "",
+             "| scenario | victim task (paper row) | victim | labels | clean | "
+             + " | ".join(METHOD_NAMES.get(m, m) for m in methods) + " |",
+             "| --- | --- | --- | ---: | ---: |" + " ---: |" * len(methods)]
     for scenario in scenarios:
-        for task in sorted({r["task"] for r in rows if r["scenario"] == scenario}):
+        groups = sorted({(r["task"], victim_kind(r)) for r in rows if r["scenario"] == scenario})
+        for task, kind in groups:
+            mine = [r for r in rows if (r["task"], r["scenario"], victim_kind(r)) == (task, scenario, kind)]
             row_task = paper_row(task, scenario)
             paper = PAPER_TABLE1.get((scenario, row_task), {})
             cells = []
             for method in methods:
-                values = [100 * r["attack_success_rate"] for r in rows
-                          if (r["task"], r["scenario"], r["method"]) == (task, scenario, method)]
+                values = [100 * float(r["attack_success_rate"]) for r in mine if r["method"] == method]
                 ours = f"**{np.mean(values):.1f} ± {np.std(values):.1f}** ({len(values)})" if values else "–"
                 theirs = f"{paper[method][0]:.1f}" if method in paper else "–"
                 cells.append(f"{ours} / {theirs}")
             label = task if row_task == task else f"{task} ({row_task})"
-            clean = [100 * r["clean_success_rate"] for r in rows if (r["task"], r["scenario"]) == (task, scenario)
-                     and r.get("clean_success_rate") not in (None, "")]
+            clean = [100 * float(r["clean_success_rate"]) for r in mine if r.get("clean_success_rate") not in (None, "")]
             clean_cell = f"{np.mean(clean):.1f}" if clean else "–"
-            lines.append(f"| {scenario} | {label} | {clean_cell} | " + " | ".join(cells) + " |")
+            labels = sorted({int(float(r["labels"])) for r in mine if r["method"] == "rat" and r.get("labels") not in (None, "")})
+            labels_cell = " / ".join(f"{n:,}" for n in labels) or "–"  # RAT's (and the preference baselines')
+            lines.append(f"| {scenario} | {label} | {kind} | {labels_cell} | {clean_cell} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def report_grid(out: str | Path) -> Path:
+    """``<out>/table1.md`` generated from ``<out>/results.csv`` alone (a grid, or several merged, whose runs are
+    gone): the command that regenerates a committed table."""
+    path = Path(out) / "results.csv"
+    if not path.exists():
+        raise RatError(f"'{out}' holds no results.csv; give a folder written by `rat bench table1`")
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    missing = {"task", "scenario", "method", "seed", "attack_success_rate"} - set(rows[0] if rows else {})
+    if not rows or missing:
+        raise RatError(f"'{path}' is not a table-1 results file (missing: {', '.join(sorted(missing)) or 'rows'})")
+    page = Path(out) / "table1.md"
+    page.write_text(markdown_table(rows))
+    return page
 
 
 def plot_curves(out: Path, task: str, rows: list[dict]) -> Path | None:
