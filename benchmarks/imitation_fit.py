@@ -17,7 +17,7 @@ reports:
     python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach --updates 20000 --recent 50000
     python benchmarks/imitation_fit.py RUN_DIR --victim zoo:drawer-open-v3 --target reach --rounds 5
 
-Results are recorded in ``benchmarks/strength.md``.
+Results are recorded in ``docs/notes/strength-log.md``.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ yardstick for the refined attack. Deterministic actions (tanh of the mean), on t
     python benchmarks/intention_alone.py RUN_DIR --episodes 10
     python benchmarks/intention_alone.py RUN_DIR/adversary-last --episodes 10
 
-Results are recorded in ``benchmarks/strength.md``.
+Results are recorded in ``docs/notes/strength-log.md``.
 """
 
 from __future__ import annotations

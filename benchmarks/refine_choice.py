@@ -10,7 +10,7 @@ run's final 30 episodes, from its ``report.json``, shows whether r̂ chose the b
 ``--pairs K`` then shows the first K of those same episodes (each attack plays every episode once) and prints,
 per episode, what the run's scripted teacher sees and says: each attack's true target return, the steps at which the
 target's success test holds, and the teacher's label for the pair (its own settings; 1 prefers the refined
-attack). Results are recorded in ``benchmarks/strength.md``.
+attack). Results are recorded in ``docs/notes/strength-log.md``.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ episode by episode (exact McNemar test on the episodes where the two disagree):
 
     python benchmarks/refine_losses.py RUN_DIR --losses l2,q --episodes 30
 
-Results are recorded in ``benchmarks/strength.md``.
+Results are recorded in ``docs/notes/strength-log.md``.
 """
 
 from __future__ import annotations

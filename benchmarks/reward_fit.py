@@ -9,7 +9,7 @@ round, as a RAT run's capped rounds do, on all the training labels each time), s
     python benchmarks/reward_fit.py runs/RUN --updates 4000                      # PEBBLE's raw inputs
     python benchmarks/reward_fit.py runs/RUN --updates 4000 --normalize-inputs   # standardised inputs
 
-Results are recorded in ``benchmarks/strength.md``.
+Results are recorded in ``docs/notes/strength-log.md``.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ hand — ``--check`` measures how well the two agree on fresh steps of the run's
 
 Per run: r̂'s per-step correlation with the true reward over three spans of the buffer, the correlation of
 50-step segment returns, and how often random pairs of those segments are ordered as the true reward orders
-them. Results are recorded in ``benchmarks/strength.md``.
+them. Results are recorded in ``docs/notes/strength-log.md``.
 """
 
 from __future__ import annotations

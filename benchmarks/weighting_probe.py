@@ -42,7 +42,7 @@ def main() -> None:
     print(f"{args.run}, checkpoint at step {meta['step']}; {args.phases} phases per form\n")
     print("| form | phase | weight mean | weight std over states | min | max |")
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
-    for norm in ("none",):  # the normalised form ("batch") measured beside it in strength.md lost and was removed
+    for norm in ("none",):  # the normalised form ("batch") measured beside it in docs/notes/strength-log.md lost and was removed
         cfg = rat_config("cpu", budget=args.budget, target=args.target, seed=args.seed)
         setup = attack_setup(args.victim, args.target, cfg.threat, progress=False)
         tmp = Path(tempfile.mkdtemp())

@@ -244,9 +244,9 @@ def test_an_oracle_run_of_the_cpu_preset_keeps_the_last_adversary_and_imitates_t
 
     config = rat_config("cpu", target="opposite")  # scores snapshots and π_θ with r̂, which an oracle run never learns
     assert (config.select, config.imitate) == ("reward", "best")
-    manipulation = rat_config("cpu", target="reach")  # strength.md: measured on the SAC faucet victim's row
+    manipulation = rat_config("cpu", target="reach")  # docs/notes/strength-log.md: measured on the SAC faucet victim's row
     assert (manipulation.select, manipulation.imitate, manipulation.refine_steps) == ("last", "current", 50)
-    assert (manipulation.refine_loss, config.refine_loss) == ("l2-or-q", "l2")  # strength.md: l2, and q where l2 falls short
+    assert (manipulation.refine_loss, config.refine_loss) == ("l2-or-q", "l2")  # docs/notes/strength-log.md: l2, and q where l2 falls short
     assert manipulation.pebble.max_episodes == 20 and manipulation.pebble.reward.normalize_inputs
     paper = rat_config("paper", target="reach")  # the paper's settings stay one preset away
     assert (paper.select, paper.imitate, paper.refine_steps, paper.refine_loss, paper.pebble.max_episodes) == \

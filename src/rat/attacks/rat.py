@@ -465,7 +465,7 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
     gaps: list[float] = []  # what refinement left of ‖μ_ν(s̃) − tanh μ_θ(s)‖ along the attacked episodes
     final = trainer.evaluate_attack(cfg.final_eval_episodes, seeds.FINAL, refine=True, imitated=imitated, gaps=gaps,
                                     desc="the attack")
-    if gaps:  # large where π_θ asks for actions the ball cannot make the victim take (benchmarks/strength.md)
+    if gaps:  # large where π_θ asks for actions the ball cannot make the victim take (docs/notes/strength-log.md)
         details["refined_gap"] = float(np.mean(gaps))
     if not final.within_budget:  # a guard on the threat model itself, never expected to fire
         raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")

@@ -42,14 +42,14 @@ RAT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "cpu": {
         # Departures for a CPU: 5×10⁴ steps, SAC and adversary batches of 256; reward rounds capped (30 epochs,
         # 400 updates a member), since each round trains on every label so far (9,000 labels: 27 minutes in all
-        # with the cap; benchmarks/strength.md). bf16 and held-out reward rounds are cheaper (benchmarks/speed.md)
+        # with the cap; docs/notes/strength-log.md). bf16 and held-out reward rounds are cheaper (benchmarks/speed.md)
         # but not the default: the main job's seed 0 made 10.0% with them, 100% without.
         # Keep the snapshot whose attack the final r̂ scores best (short PEBBLE runs are not monotone, and the
         # attacker judges its attack only through r̂), and imitate π_θ as kept at the last evaluation: the main
-        # job's last adversary made 86.7 / 76.7 / 100% with it, 13.3 / 10.0 / 46.7% without (strength.md).
+        # job's last adversary made 86.7 / 76.7 / 100% with it, 13.3 / 10.0 / 46.7% without (docs/notes/strength-log.md).
         "any": {"total_steps": 50_000, "adversary_batch": 256, "select": "reward", "imitate": "best",
                 "pebble.sac.batch_size": 256, "pebble.reward.max_epochs": 30, "pebble.reward.max_updates": 400},
-        # Measured on 3 seeds of the SAC faucet victim's row (strength.md, "Queries from recent episodes only",
+        # Measured on 3 seeds of the SAC faucet victim's row (docs/notes/strength-log.md, "Queries from recent episodes only",
         # and "Refining by l2, and by π_θ's critic where l2 falls short"): r̂'s inputs standardised, queries from
         # the last 20 episodes, the adversary imitating π_θ as it moves, the last adversary kept, Δ refined 50
         # steps by l2 and by π_θ's critic where l2 leaves a gap above 1: 100 / 96.7 / 96.7%.

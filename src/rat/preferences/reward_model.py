@@ -112,7 +112,7 @@ class RewardEnsemble(nn.Module):
 
         The features of ``s ‖ a`` differ in scale by orders of magnitude (positions in metres, quaternions, the
         gripper, actions in [−1, 1]); raw, the members are slow to resolve the centimetres a reward may turn
-        on. What it does to r̂ and to the attack: benchmarks/strength.md.
+        on. What it does to r̂ and to the attack: docs/notes/strength-log.md.
         """
         total, square, n = 0.0, 0.0, 0
         for o, a in zip(obs, actions):

@@ -14,7 +14,7 @@ Noise options (B-Pref, Lee et al. 2021):
 - ``equal``: label 0.5 when ``|R¹ − R⁰| < equal × scale``.
 - ``ties``: label 0.5 when the returns are exactly equal (a target reward that is flat or clipped
   makes many such pairs). By default, as B-Pref's teacher does, they are labelled "first segment
-  preferred": noise no reward model can fit (see ``benchmarks/strength.md``).
+  preferred": noise no reward model can fit (see ``docs/notes/strength-log.md``).
 
 ``scale`` is the typical segment return (B-Pref: the mean true episode return times
 ``length / horizon``): the ``segment_return_scale`` of the :class:`~rat.preferences.labeller.QueryRound`.
