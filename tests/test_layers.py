@@ -13,7 +13,7 @@ LAYERS = [
     {"preferences", "victims"},
     {"eval"},
     {"envs", "agents"},
-    {"loop", "runs", "checkpoint", "reports", "seeds", "configs", "device", "errors", "plots", "plugins"},
+    {"loop", "runs", "checkpoint", "reports", "seeds", "configs", "device", "errors", "plots", "plugins", "pages"},
 ]
 
 

@@ -850,6 +850,15 @@ def bench_table3(tasks, rows, attacks, seeds, target, preset, episodes, out, rep
     click.echo(f"{len(done)} finished rows; {out / 'table3.md'}, {out / 'results.json'}")
 
 
+@cli.command("report")
+@click.argument("folder", type=click.Path(path_type=Path))
+def report(folder) -> None:
+    """One static HTML page of a run (an attack, a robust agent) or a grid (rat bench table1/table3): FOLDER/report.html."""
+    from rat.pages import write_page
+
+    click.echo(f"{write_page(folder)}")
+
+
 # --- entry point -----------------------------------------------------------------------------------
 
 
