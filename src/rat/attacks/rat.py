@@ -33,7 +33,7 @@ import torch
 
 from rat import seeds
 from rat.attacks.base import SNAPSHOT, AttackSetup, register_attack
-from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
+from rat.attacks.evaluation import AttackEval, evaluate_attack
 from rat.attacks.losses import (
     Adversary,
     Imitation,
@@ -43,6 +43,7 @@ from rat.attacks.losses import (
     saturation,
 )
 from rat.attacks.refine import REFINE_SWITCH_GAP, check_refine_loss, refined_function
+from rat.attacks.runs import conclude
 from rat.attacks.saved import (
     IntentionPolicy,
     adversary_function,
@@ -56,7 +57,7 @@ from rat.device import resolve_device
 from rat.envs.physics import physics_of
 from rat.envs.tasks import episode_length
 from rat.errors import RatError
-from rat.loop import TrainingLoop, write_report
+from rat.loop import TrainingLoop
 from rat.plots import plot_training
 from rat.preferences.labeller import Labeller
 from rat.preferences.pebble import PebbleConfig, PebbleLearner
@@ -467,10 +468,6 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
                                     desc="the attack")
     if gaps:  # large where π_θ asks for actions the ball cannot make the victim take (docs/notes/strength-log.md)
         details["refined_gap"] = float(np.mean(gaps))
-    if not final.within_budget:  # a guard on the threat model itself, never expected to fire
-        raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {cfg.epsilon}")
-    clean = evaluate_clean(trainer.victim, setup.make_env(cfg.seed + seeds.EVAL_ENV), target, cfg.final_eval_episodes,
-                           seeds.FINAL, progress=setup.progress)
     save_checkpoint(run.dir / "adversary", "adversary", {"adversary": adversary.state_dict(), **imitated.state_dict()},
                     meta | {"selected_step": details.get("selected_step", trainer.step)})
     title = training_title(target.name, setup.describe)
@@ -481,11 +478,10 @@ def train_rat(config: RATConfig, setup: AttackSetup, out: str | Path, tensorboar
                              f"the attack, Δ refined ({cfg.final_eval_episodes} episodes)"))
     else:
         plot_training(run.logger.path, run.dir / "training.png", f"{title}\nattack success during training")
-    report = final.report("rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, steps=trainer.step,
-                          labels=store.count(trainer.learner.source), minutes=train_seconds / 60,
-                          train_minutes=loop.total_seconds / 60, details=details,
-                          clean=clean)
-    write_report(run.dir, report)
+    report = conclude(run, "rat", "oracle" if cfg.pebble.oracle else "labels", setup, cfg.seed, final,
+                      cfg.final_eval_episodes, steps=trainer.step, labels=store.count(trainer.learner.source),
+                      minutes=train_seconds / 60, train_minutes=loop.total_seconds / 60, details=details,
+                      victim=trainer.victim)
     store.close()
     return report
 

@@ -16,13 +16,13 @@ import gymnasium as gym
 
 from rat import seeds
 from rat.attacks.base import AttackSetup, check_reward, get_attack
-from rat.attacks.evaluation import evaluate_attack, evaluate_clean
+from rat.attacks.evaluation import AttackEval, evaluate_attack, evaluate_clean
 from rat.attacks.threat import Perturbation
 from rat.checkpoint import save_checkpoint
 from rat.loop import write_report
 from rat.reports import AttackReport
 from rat.runs import Run, seed_everything, to_jsonable
-from rat.victims.base import check_compatible
+from rat.victims.base import Victim, check_compatible
 
 ADVERSARY_KIND = "baseline-adversary"
 
@@ -65,12 +65,21 @@ def baseline_run(method: str, setup: AttackSetup, out: str | Path, config: dict[
     perturbation: Perturbation = attack.load(run.dir, meta, setup.victim)
     final = evaluate_attack(setup.victim, perturbation, setup.make_env(seed + seeds.EVAL_ENV), setup.target, threat,
                             final_episodes, seeds.FINAL)
-    if not final.within_budget:
-        raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {threat.epsilon}")
-    clean = evaluate_clean(setup.victim, setup.make_env(seed + seeds.EVAL_ENV), setup.target, final_episodes,
-                           seeds.FINAL)
-    report = final.report(method, setup.reward, setup, seed, steps=int(details.pop("steps", 0)),
-                          labels=int(details.pop("labels", 0)), minutes=(time.perf_counter() - started) / 60,
-                          train_minutes=details.pop("train_minutes", None), details=details, clean=clean)
+    return conclude(run, method, setup.reward, setup, seed, final, final_episodes, steps=int(details.pop("steps", 0)),
+                    labels=int(details.pop("labels", 0)), minutes=(time.perf_counter() - started) / 60,
+                    train_minutes=details.pop("train_minutes", None), details=details)
+
+
+def conclude(run: Run, method: str, reward: str, setup: AttackSetup, seed: int, final: AttackEval, episodes: int, *,
+             steps: int, labels: int, minutes: float, train_minutes: float | None, details: dict,
+             victim: Victim | None = None) -> AttackReport:
+    """The end of every attack's run, RAT's and the baselines': the guard on the budget, the clean victim at the
+    same target on the same episodes, and the report (returned, and written to ``run/report.json``)."""
+    if not final.within_budget:  # a guard on the threat model itself, never expected to fire
+        raise RuntimeError(f"perturbation {final.max_perturbation} exceeded epsilon {setup.threat.epsilon}")
+    clean = evaluate_clean(victim or setup.victim, setup.make_env(seed + seeds.EVAL_ENV), setup.target, episodes,
+                           seeds.FINAL, progress=setup.progress)
+    report = final.report(method, reward, setup, seed, steps=steps, labels=labels, minutes=minutes,
+                          train_minutes=train_minutes, details=details, clean=clean)
     write_report(run.dir, report)
     return report
