@@ -36,8 +36,11 @@ def test_the_table_puts_each_row_beside_the_papers_and_leaves_random_out_of_the_
 def test_bench_table3_attacks_the_undefended_victim_and_keeps_what_it_measured(tmp_path, capsys):
     from rat.cli import main
 
-    args = ["bench", "table3", "--rows", "undefended", "--attacks", "random", "--episodes", "3", "--preset", "smoke",
-            "--out", str(tmp_path)]
+    def grid(jobs="1", seeds="0"):
+        return ["bench", "table3", "--rows", "undefended", "--attacks", "random", "--episodes", "3", "--preset", "smoke",
+                "--jobs", jobs, "--seeds", seeds, "--out", str(tmp_path)]
+
+    args = grid()
     assert main(args) == 0
     cell = tmp_path / "faucet-close-v3" / "undefended-seed0"
     record = json.loads((cell / "row.json").read_text())
@@ -45,6 +48,9 @@ def test_bench_table3_attacks_the_undefended_victim_and_keeps_what_it_measured(t
     assert "undefended (zoo SAC)" in (tmp_path / "table3.md").read_text()
     (cell / "eval" / "random" / "table-row.json").write_text(json.dumps({**record["attacks"]["random"], "return": -1.0}))
     assert main(args) == 0  # finished cells are not measured again
+    assert json.loads((cell / "row.json").read_text())["attacks"]["random"]["return"] == -1.0
+    assert main(grid(jobs="2", seeds="0,1")) == 0  # two processes; seed 0's cell is kept
+    assert json.loads((tmp_path / "faucet-close-v3" / "undefended-seed1" / "row.json").read_text())["seed"] == 1
     assert json.loads((cell / "row.json").read_text())["attacks"]["random"]["return"] == -1.0
     assert main(["bench", "table3", "--rows", "nobody", "--out", str(tmp_path)]) == 2
     assert "unknown table-3 rows nobody" in capsys.readouterr().err

@@ -839,14 +839,17 @@ def bench_report(folder) -> None:
 @click.option("--preset", type=click.Choice(["cpu", "smoke"]), default="cpu", show_default=True,
               help="the robust agents' and the attacks' preset")
 @click.option("--episodes", type=int, default=100, show_default=True, help="attacked episodes per cell (the paper's 100)")
+@click.option("--jobs", type=int, default=2, show_default=True, help="parallel local processes")
+@click.option("--ray-address", default=None, help="run the cells as Ray tasks on this cluster ('auto', 'ray://host:10001')")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/table3"), show_default=True)
 @click.option("--report-only", is_flag=True, help="run nothing: write table3.md from the finished rows in --out")
-def bench_table3(tasks, rows, attacks, seeds, target, preset, episodes, out, report_only) -> None:
+def bench_table3(tasks, rows, attacks, seeds, target, preset, episodes, jobs, ray_address, out, report_only) -> None:
     """Train each row's robust agent, attack it with each attack, and write table 3 (finished parts are skipped)."""
     from rat.experiments.table3 import run_table3, write_table3
 
     done = write_table3(out) if report_only else run_table3(tasks, rows, attacks, seeds, out, preset, target,
-                                                              episodes=episodes, echo=click.echo)
+                                                              episodes=episodes, echo=click.echo, jobs=jobs,
+                                                              ray_address=ray_address)
     click.echo(f"{len(done)} finished rows; {out / 'table3.md'}, {out / 'results.json'}")
 
 

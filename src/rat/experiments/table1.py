@@ -24,16 +24,14 @@ import dataclasses
 import json
 import os
 import time
-import traceback
 from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
-from rat.errors import RatError, require
+from rat.errors import RatError
+from rat.experiments.grid import executor, guarded
 from rat.experiments.paper import PAPER_TABLE1
 from rat.experiments.presets import GridPreset
 from rat.runs import config_differences, read_run_config
@@ -247,14 +245,9 @@ def adopt_run(run: str | Path, cells: list[Cell], preset: GridPreset, out: str |
 
 
 def _guarded(cell: Cell, preset: GridPreset, out: str, plugins: tuple[str, ...] = ()) -> dict:
-    """:func:`run_cell` that returns a failure row instead of raising (so one cell cannot stop a grid)."""
-    try:
-        return run_cell(cell, preset, out, plugins)
-    except Exception as exc:  # noqa: BLE001 - recorded with its traceback and reported
-        directory = cell.directory(Path(out))
-        directory.mkdir(parents=True, exist_ok=True)
-        (directory / "error.txt").write_text(traceback.format_exc())
-        return {**asdict(cell), "error": f"{exc.__class__.__name__}: {exc}"}
+    """:func:`run_cell`, a failure row in its place if it raises (so one cell cannot stop a grid)."""
+    row = guarded(run_cell, cell, cell.directory(Path(out)), preset, out, plugins)
+    return {**asdict(cell), **row} if "error" in row else row
 
 
 def finished(cell: Cell, out: Path) -> dict | None:
@@ -295,10 +288,10 @@ def run_grid(cells: list[Cell], preset: GridPreset, out: str | Path, jobs: int =
         echo(f"{len(skipped)} cells already finished; {len(todo)} to run")
     first = sorted((c for c in todo if not needs_labels(c.method)), key=lambda c: c.method != "rat")  # longest first
     second = [c for c in todo if needs_labels(c.method)]
-    execute = _ray_executor(ray_address, heartbeat) if ray_address else _process_executor(jobs, heartbeat)
+    execute = executor(jobs, ray_address, heartbeat)
     ran, failed = [], []
     for wave in (first, second):
-        for row in execute(wave, preset, str(out), tuple(plugins)):
+        for row in execute(_guarded, wave, preset, str(out), tuple(plugins)):
             if row is None:  # a heartbeat: nothing finished for a while
                 running = [line for c in wave if (line := cell_progress(c, out, 2 * heartbeat))]
                 echo("running: " + "; ".join(running) if running else "running: no cell has logged lately")
@@ -357,45 +350,6 @@ def cell_progress(cell: Cell, out: Path, within: float) -> str | None:
         settings = {}
     total = settings.get("rat", settings.get("ppo", {})).get("total_steps", "?")
     return f"{cell.key} step {step}/{total}"
-
-
-def _process_executor(jobs: int, heartbeat: float):
-    """Cells in ``jobs`` spawned processes; yields each result row as it finishes, None on a quiet heartbeat."""
-    if jobs <= 0:
-        raise RatError(f"--jobs must be positive, got {jobs}")
-
-    def execute(cells, preset, out, plugins):
-        if not cells:
-            return
-        if jobs == 1:
-            for cell in cells:
-                yield _guarded(cell, preset, out, plugins)
-            return
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-            pending = {pool.submit(_guarded, cell, preset, out, plugins) for cell in cells}
-            while pending:
-                done, pending = wait(pending, timeout=heartbeat, return_when=FIRST_COMPLETED)
-                yield from (future.result() for future in done) if done else [None]
-
-    return execute
-
-
-def _ray_executor(address: str, heartbeat: float):
-    """Cells as Ray tasks of one CPU each on the cluster at ``address``; yields like :func:`_process_executor`."""
-    ray = require("ray", "ray")
-
-    def execute(cells, preset, out, plugins):
-        if not cells:
-            return
-        if not ray.is_initialized():
-            ray.init(address=address, log_to_driver=False)
-        remote = ray.remote(num_cpus=1)(_guarded)
-        pending = [remote.remote(cell, preset, out, plugins) for cell in cells]
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1, timeout=heartbeat)
-            yield ray.get(done[0]) if done else None
-
-    return execute
 
 
 # --- reports ---------------------------------------------------------------------------------------------------

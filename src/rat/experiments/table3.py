@@ -3,7 +3,8 @@
 A row is one defence of one task and seed (``rat-atla``, ``rat-wocar``, ``atla``, ``pa-atla``), or ``undefended``:
 the zoo's SAC victim the defences start from. Each row's agent is trained by :func:`~rat.robust.run.train_robust_from`
 in ``<out>/<task>/<row>-seed<seed>`` (skipped once finished, resumed if interrupted), then every attack is trained
-against it in that directory's ``eval/<attack>`` (:func:`~rat.robust.run.attack_agent`). The table gives, per
+against it in that directory's ``eval/<attack>`` (:func:`~rat.robust.run.attack_agent`): two waves of cells on
+:mod:`rat.experiments.grid`, in local processes or as Ray tasks. The table gives, per
 attack, the task return (table 3's number) *and* the target's success rate, and per row the clean return, the price
 a defence pays when nobody attacks.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -40,43 +42,124 @@ def check_grid(rows: Iterable[str], attacks: Iterable[str]) -> None:
         get_attack(attack)  # an unknown attack is named before anything trains
 
 
-def run_row(task: str, row: str, seed: int, attacks: list[str], out: str | Path, preset: str = "cpu",
-            target: str = "reach", threat: ThreatModel = ThreatModel(), episodes: int = 100,
-            progress: bool = True) -> dict:
-    """Train (or find) the row's agent, attack it with each attack, and write ``<row dir>/row.json``."""
-    from rat.robust.run import attack_agent, finished_report, train_robust_from
+@dataclass(frozen=True)
+class Agent:
+    """A row's agent: the zoo victim itself (``undefended``) or the robust agent trained from it."""
+
+    task: str
+    row: str
+    seed: int
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}/{self.row}-seed{self.seed}"
+
+    def directory(self, out: str | Path) -> Path:
+        return row_directory(out, self.task, self.row, self.seed)
+
+    def victim(self, out: str | Path) -> str:
+        """The victim spec the attacks are trained against."""
+        return f"zoo:{self.task}@sac" if self.row == "undefended" else str(self.directory(out))
+
+    def trained(self, out: str | Path) -> bool:
+        return self.row == "undefended" or (self.directory(out) / "report.json").exists()
+
+
+def train_agent(agent: Agent, out: str, preset: str, target: str, epsilon: float, norm: str, progress: bool) -> dict:
+    """Grid cell: train (or resume) the robust agent of ``agent``'s row."""
+    import torch
+
+    from rat.robust.run import train_robust_from
     from rat.robust.trainer import robust_preset
 
-    directory, victim = row_directory(out, task, row, seed), f"zoo:{task}@sac"
-    record = {"task": task, "row": row, "seed": seed, "target": target, "epsilon": threat.epsilon,
-              "norm": threat.norm, "preset": preset}
-    if row == "undefended":
-        agent = victim
-    else:
-        if not (directory / "report.json").exists():
-            train_robust_from(robust_preset(preset, method=row, seed=seed), victim, target, directory, preset,
-                              threat=threat, progress=progress)
+    torch.set_num_threads(1)  # one core per cell; cells run side by side
+    report = train_robust_from(robust_preset(preset, method=agent.row, seed=agent.seed), f"zoo:{agent.task}@sac",
+                               target, agent.directory(out), preset, threat=ThreatModel(epsilon, norm),
+                               progress=progress)
+    return {"cell": agent.key, "train_minutes": report["train_minutes"]}
+
+
+def attack_cell(cell: tuple[Agent, str], out: str, preset: str, target: str, epsilon: float, norm: str,
+                episodes: int, progress: bool) -> dict:
+    """Grid cell: one attack trained against one row's agent, and its attacked episodes
+    (``<row dir>/eval/<attack>/table-row.json``)."""
+    import torch
+
+    from rat.robust.run import attack_agent
+
+    torch.set_num_threads(1)
+    agent, attack = cell
+    table = attack_agent(agent.victim(out), agent.directory(out) / "eval", target, ThreatModel(epsilon, norm),
+                         [attack], preset, None, episodes, agent.seed, progress)
+    return {"cell": f"{agent.key}/{attack}", **table["attacks"][attack]}
+
+
+def _guarded(run, cell, directory: Path, *args) -> dict:
+    from rat.experiments.grid import guarded
+
+    return {"cell": cell.key if isinstance(cell, Agent) else f"{cell[0].key}/{cell[1]}", **guarded(run, cell, directory, *args)}
+
+
+def guarded_agent(agent: Agent, *args) -> dict:
+    return _guarded(train_agent, agent, agent.directory(args[0]), *args)
+
+
+def guarded_attack(cell: tuple[Agent, str], *args) -> dict:
+    return _guarded(attack_cell, cell, cell[0].directory(args[0]) / "eval" / cell[1], *args)
+
+
+def write_row(agent: Agent, attacks: list[str], out: str | Path, preset: str, target: str,
+              threat: ThreatModel) -> dict | None:
+    """``<row dir>/row.json`` from the row's finished attack cells (None until one has finished)."""
+    from rat.robust.run import finished_report
+
+    directory = agent.directory(out)
+    cells = {a: json.loads(p.read_text()) for a in attacks if (p := directory / "eval" / a / "table-row.json").exists()}
+    if not cells:
+        return None
+    first = next(iter(cells.values()))
+    record = {"task": agent.task, "row": agent.row, "seed": agent.seed, "target": target, "epsilon": threat.epsilon,
+              "norm": threat.norm, "preset": preset, "clean_return": first["clean_return"],
+              "clean_return_std": first["clean_return_std"], "attacks": cells}
+    if agent.row != "undefended":
         report = finished_report(directory)
-        agent = str(directory)
         record |= {"train_minutes": report["train_minutes"], "clean_task_success": report["clean_task_success"]}
-    table = attack_agent(agent, directory / "eval", target, threat, attacks, preset, None, episodes, seed, progress)
-    record |= {"clean_return": table["clean_return"], "clean_return_std": table["clean_return_std"],
-               "attacks": table["attacks"]}
-    directory.mkdir(parents=True, exist_ok=True)
     (directory / "row.json").write_text(json.dumps(record, indent=1))
     return record
 
 
 def run_table3(tasks: list[str], rows: list[str], attacks: list[str], seeds: list[int], out: str | Path,
                preset: str = "cpu", target: str = "reach", threat: ThreatModel = ThreatModel(), episodes: int = 100,
-               echo: Callable[[str], None] = print, progress: bool = True) -> list[dict]:
-    """Every (task, seed, row) in turn, finished parts skipped; then ``<out>/table3.md`` from every finished row."""
+               echo: Callable[[str], None] = print, jobs: int = 1, ray_address: str | None = None,
+               heartbeat: float = 300.0) -> list[dict]:
+    """The grid in two waves, finished cells skipped and interrupted ones resumed: every row's robust agent, then
+    every (agent, attack) cell, RAT's first (the longest); then ``<out>/table3.md`` from every finished row."""
+    from rat.experiments.grid import executor
+
     check_grid(rows, attacks)
-    for task in tasks:
-        for seed in seeds:
-            for row in rows:
-                echo(f"{task} seed {seed}: {row}")
-                run_row(task, row, seed, attacks, out, preset, target, threat, episodes, progress)
+    out = str(out)
+    agents = [Agent(task, row, seed) for task in tasks for seed in seeds for row in rows]
+    execute = executor(jobs, ray_address, heartbeat)
+    args = (out, preset, target, threat.epsilon, threat.norm)
+    progress = jobs == 1 and not ray_address  # bars only where one cell runs at a time, in this process
+    failed = []
+    to_train = [a for a in agents if not a.trained(out)]
+    echo(f"{len(to_train)} robust agents to train; then up to {len(agents) * len(attacks)} attack cells")
+    for row in execute(guarded_agent, to_train, *args, progress):
+        if row is not None:
+            failed += [row] * ("error" in row)
+            echo(f"{row['cell']}: " + (row.get("error") or f"trained, {row['train_minutes']:.1f} min"))
+    cells = [(a, attack) for attack in sorted(attacks, key=lambda x: x != "rat") for a in agents
+             if a.trained(out) and not (a.directory(out) / "eval" / attack / "table-row.json").exists()]
+    for row in execute(guarded_attack, cells, *args, episodes, progress):
+        if row is not None:
+            failed += [row] * ("error" in row)
+            echo(f"{row['cell']}: " + (row.get("error") or f"return {row['return']:.1f} ± {row['return_std']:.1f}, "
+                                       f"target reached {100 * row['target_success']:.1f}%"))
+    for agent in agents:
+        write_row(agent, attacks, out, preset, target, threat)
+    if failed:
+        raise RatError(f"{len(failed)} table-3 cells failed (tracebacks in their error.txt); fix and re-run to resume")
     return write_table3(out)
 
 
