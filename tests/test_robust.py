@@ -235,3 +235,22 @@ def test_a_rat_atla_agent_beats_the_undefended_victim_under_a_fixed_attack(tmp_p
                                    undefended.std_return, 50, equal_var=False, alternative="greater").pvalue
     assert robust.mean_return >= undefended.mean_return + 1.0 and p < 0.01, \
         f"robust {robust.mean_return:.2f}, undefended {undefended.mean_return:.2f}, p={p:.2g}"
+
+
+def test_a_checkpoint_of_an_unreleased_layout_is_refused_in_one_line(tmp_path):
+    import json
+
+    cfg = config("rat-wocar", wocar_critic="worst-case", agent_steps=200, critic_warmup=200)
+    run, trainer, loop = prepare_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "run",
+                                        describe={"task": "point"}, progress=False)
+    while trainer.step < 100:
+        trainer.advance()
+    loop.checkpoint()
+    path = tmp_path / "run" / "checkpoint.json"
+    record = json.loads(path.read_text())
+    del record["meta"]["seconds"]  # as a checkpoint written before its time was recorded
+    path.write_text(json.dumps(record))
+    _, _, again = prepare_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "run",
+                                 describe={"task": "point"}, progress=False)
+    with pytest.raises(RatError, match="lacks 'seconds': an unreleased version of rat wrote it; train into a new --out"):
+        again.resume()

@@ -27,6 +27,7 @@ from typing import Any, Protocol, runtime_checkable
 from tqdm.auto import tqdm
 
 from rat.checkpoint import load_checkpoint, save_checkpoint
+from rat.errors import RatError
 from rat.runs import Run, to_jsonable
 
 
@@ -102,8 +103,12 @@ class TrainingLoop:
             run.logger.truncate_after(-1)  # killed before its first checkpoint: start afresh, rows and all
             return False
         state, meta = load_checkpoint(run.checkpoint_path, self.trainer.kind)
-        self.trainer.load_state_dict(state, meta)
-        self.seconds_before = float(meta.get("seconds", 0.0))  # older checkpoints did not record it
+        try:
+            self.trainer.load_state_dict(state, meta)
+            self.seconds_before = float(meta["seconds"])
+        except KeyError as missing:  # a checkpoint of an unreleased layout: say so, change nothing
+            raise RatError(f"the checkpoint in '{run.dir}' lacks {missing}: an unreleased version of rat wrote it; "
+                           "train into a new --out (or delete its checkpoint.* to start this one afresh)") from None
         run.logger.truncate_after(self.trainer.step)
         self._schedule(self.trainer.step)
         self.saved_step = self.trainer.step

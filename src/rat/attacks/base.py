@@ -158,16 +158,13 @@ def saved_attack_meta(run: str | Path) -> dict[str, Any]:
     header = read_meta(path)
     meta = header.get("meta")
     if header.get("kind") == SNAPSHOT and isinstance(meta, dict):  # its own metadata and step
-        step = {"snapshot_step": meta.get("step")}
-        if "target" not in meta:  # written before 2026-12-03, with its step alone: the rest is its run's
-            return saved_attack_meta(saved_attack_path(path).parent.parent) | step
-        meta = {k: v for k, v in meta.items() if k != "step"} | step
+        meta = {k: v for k, v in meta.items() if k != "step"} | {"snapshot_step": meta.get("step")}
     budget = meta.get("rat", meta) if isinstance(meta, dict) else {}
     missing = [k for k in ("target",) if not isinstance(meta, dict) or k not in meta]
     missing += [k for k in ("epsilon", "norm") if not isinstance(budget, dict) or k not in budget]
     if missing:
-        raise RatError(f"'{path}.json' lacks {', '.join(missing)}: it was edited or not written by rat; "
-                       "train the attack again (same --out resumes)")
+        raise RatError(f"'{path}.json' lacks {', '.join(missing)}: it was written by an unreleased version of rat, "
+                       "edited, or not written by rat; train the attack again")
     return meta
 
 

@@ -283,10 +283,8 @@ class PebbleLearner:
 
     def restore_meta(self, meta: dict) -> None:
         """Read the labels under the name they were asked by (:meth:`checkpoint_meta`), so a run moved or copied
-        to another directory resumes with its own labels rather than asking them again. A checkpoint that does not
-        name it (written before it did) takes the store's one source, where it holds one."""
-        sources = [name for name, _ in self.store.sources()]
-        self.source = meta.get("label_source") or (sources[0] if len(sources) == 1 else self.source)
+        to another directory resumes with its own labels rather than asking them again."""
+        self.source = meta["label_source"]
 
     def load_state_dict(self, state: dict) -> None:
         self.agent.load_state_dict(state["agent"])

@@ -272,7 +272,7 @@ class RewardEnsemble(nn.Module):
             o.load_state_dict(s)
             keep_fused(o)
         self.rounds, self.epochs_run = int(state["rounds"]), int(state["epochs_run"])
-        self.labels_trained = int(state.get("labels_trained", 0))  # older checkpoints: every label counts as new
+        self.labels_trained = int(state["labels_trained"])
 
 
 def reward_agreement(learned: np.ndarray, true: np.ndarray, segment: int, pairs: int = 20_000) -> dict[str, float]:

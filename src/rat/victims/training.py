@@ -178,7 +178,7 @@ class BCTrainer:
         self.optimizer.load_state_dict(state["optimizer"])
         restore_rng_state(self.rng, state["rng"])
         self._set_demos(Demonstrations(**state["demos"]))
-        self.step = int(meta["update"] if "update" in meta else meta["step"])  # older runs recorded only "update"
+        self.step = int(meta["update"])
 
     def checkpoint_meta(self) -> dict:
         return {"update": self.step}
@@ -273,7 +273,7 @@ class SACVictimTrainer:
         self.agent.load_optimizer_state(state["optimizers"])
         self.buffer.load_state_dict(state["buffer"])
         restore_rng_state(self.rng, state["rng"])
-        self.best = state.get("best")  # absent in checkpoints of older versions
+        self.best = state.get("best")  # None (not stored) until the first evaluation
         self.step, self.episode = int(meta["step"]), int(meta["episode"])
         self.streak, self.started = int(meta.get("streak", 0)), True
         self.t0, self.t0_step = time.perf_counter(), self.step  # speed of this session
