@@ -530,12 +530,6 @@ THREAT = "rat.attacks.threat:ThreatModel"
               help="cpu: 5e4 steps, batches of 256 (this machine); paper: 1e6 steps, batch 1024 (a GPU); "
               "smoke: minutes, not results")
 @click.option("--steps", type=int, default=None, help="environment steps [the preset's]")
-@click.option("--ablation", type=click.Choice(["none", "no-weighting", "no-combined", "no-intention"]), default=None,
-              help="RAT: the paper's table 4 (see the README)")
-@click.option("--kl-form", type=click.Choice(["exact", "released"]), default=None, help="RAT's KL [exact]")
-@click.option("--hypergradient", type=click.Choice(["exact", "batch-mean"]), default=None,
-              help="RAT's hypergradient [exact]")
-@click.option("--actor-steps", type=int, default=None, help="PA-AD actor: 1 = FGSM [1], more = PGD")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="where to train [the attack's]")
 @click.option("--seed", type=int, default=0, show_default=True)
 @set_option("the attack's configuration (`rat list attacks` names its class)")
@@ -545,7 +539,7 @@ THREAT = "rat.attacks.threat:ThreatModel"
 @click.option("--tensorboard", is_flag=True)
 @labeller_options
 def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon, norm, budget, spend_by, seed_steps,
-                 pretrain_steps, preset, steps, ablation, kl_form, hypergradient, actor_steps, device, seed, assignments,
+                 pretrain_steps, preset, steps, device, seed, assignments,
                  out, video, tensorboard, labeller, web_host, web_port, web_timeout, web_fallback) -> None:
     """Train an attack (RAT by default) and evaluate it; re-running with the same --out resumes it."""
     from rat.attacks import ThreatModel, check_reward, get_attack
@@ -555,8 +549,7 @@ def attack_train(method, victim_spec, task, target, reward, labels_path, epsilon
 
     attack = get_attack(method)
     reward = check_reward(attack, reward or attack.rewards[0])
-    given = {"ablation": ablation, "kl_form": kl_form, "hypergradient": hypergradient, "actor_steps": actor_steps,
-             "device": device}
+    given = {"device": device}
     fields = set(getattr(attack.config, "__dataclass_fields__", {}))
     overrides = {k: v for k, v in given.items() if v is not None}
     unknown = sorted(k for k in overrides if k not in fields)
