@@ -10,8 +10,8 @@ scenario, not what an attack method achieves.
     python benchmarks/steerability.py                         # every zoo victim, ε = 0.1, 10 episodes
     python benchmarks/steerability.py --victims zoo:faucet-close-v3@bc --epsilons 0.05,0.1,0.2 --episodes 20
 
-The library part (:func:`steerability`) takes any victim, environment and steering; the tests run
-it on their point environment.
+The greedy attacker is the library's ``probe`` attack (:mod:`rat.attacks.probe`); this script measures closest
+approaches beside success, for any victim, environment and steering; the tests run it on their point environment.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from rat.attacks.gradient import search_ball
+from rat.attacks.probe import greedy_delta
 from rat.attacks.threat import ThreatModel
 from rat.victims.base import Victim
 
@@ -43,22 +43,6 @@ class Steering:
     direction: Callable[[np.ndarray], np.ndarray]
     distance: Callable[[dict], float]
     radius: float
-
-
-def greedy_delta(victim: Victim, obs: np.ndarray, direction: np.ndarray, threat: ThreatModel, restarts: int,
-                 steps: int, rng: np.random.Generator) -> torch.Tensor:
-    """Δ in the unit ball maximising the component of the victim's action along ``direction`` (best of ``restarts``)."""
-    s = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0).repeat(restarts, 1)
-    d = torch.as_tensor(direction, dtype=torch.float32)
-    d = d / d.norm().clamp_min(1e-9)
-
-    def goalward(attacked: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
-        return attacked @ d
-
-    delta = search_ball(victim, s, goalward, threat, steps, generator=rng)
-    with torch.no_grad():
-        values = goalward(victim.act(threat.perturb(s, delta)), None)
-    return delta[values.argmax()]
 
 
 def steerability(victim: Victim, env: gym.Env, steering: Steering, threat: ThreatModel, episodes: int,

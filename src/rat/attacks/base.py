@@ -104,6 +104,7 @@ class Attack(Protocol):
 
 def _load_builtin() -> None:
     """Import the modules whose attacks register themselves."""
+    import rat.attacks.probe  # noqa: F401
     import rat.attacks.rat  # noqa: F401
     import rat.attacks.rl  # noqa: F401
     import rat.attacks.simple  # noqa: F401
