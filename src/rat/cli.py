@@ -846,6 +846,52 @@ def bench_table3(tasks, rows, attacks, seeds, target, preset, episodes, jobs, ra
     click.echo(f"{len(done)} finished rows; {out / 'table3.md'}, {out / 'results.json'}")
 
 
+@cli.command("audit")
+@click.argument("agent")
+@click.option("--task", default=None, help="the agent's own task, for an agent that does not record one")
+@click.option("--targets", default="reach", show_default=True, callback=_csv(str), help="target behaviours, comma-separated")
+@click.option("--epsilons", default="0.02,0.05,0.1", show_default=True, callback=_csv(float),
+              help="budgets ε (raw observation units), comma-separated")
+@click.option("--norm", type=click.Choice(["linf", "l2", "l1"]), default="linf", show_default=True)
+@click.option("--attacks", default="random,mad,probe,sa-rl,rat", show_default=True, callback=_csv(str),
+              help="cheapest first; each runs at every target and ε before the next")
+@click.option("--budget-minutes", type=float, default=240, show_default=True,
+              help="checked before each attack; an attack started is finished")
+@click.option("--preset", type=click.Choice(["cpu", "paper", "smoke"]), default="cpu", show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--video/--no-video", default=True, show_default=True,
+              help="film the strongest attack of each target at its largest ε")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="the audit's folder [runs/audit-<agent>]")
+def audit(agent, task, targets, epsilons, norm, attacks, budget_minutes, preset, seed, video, out) -> None:
+    """How robust is AGENT (a zoo victim, an SB3 file, a victim folder)? Every attack at every target and ε, within
+    a time budget, resumable; one page: OUT/report.html."""
+    from rat.attacks import ThreatModel
+    from rat.envs import get_target, make_task
+    from rat.experiments.audit import check_audit, run_audit
+    from rat.experiments.runner import attack_config, attack_setup, film_attack, load_victim_for
+    from rat.pages import write_page
+    from rat.victims import check_compatible
+
+    check_audit(epsilons, budget_minutes, attacks)
+    for target in targets:  # the agent, its task, each target: checked before anything is written
+        victim, _, env_task = load_victim_for(agent, get_target(target), task)
+        check_compatible(victim, make_task(env_task), f"task '{env_task}'")
+    name = agent.replace(":", "-").replace("/", "_").replace("@", "-")
+    out = out or Path("runs") / f"audit-{name}"
+
+    def setup_for(target, epsilon, reward):
+        return attack_setup(agent, target, ThreatModel(epsilon, norm), seed, reward, task=task)
+
+    def config_for(method, target):
+        return attack_config(method, preset, None, None, target)
+
+    record = run_audit(setup_for, config_for, targets, epsilons, out, budget_minutes, attacks, echo=click.echo,
+                       film=(lambda run, path: film_attack(run, path, seed)) if video else None, victim=agent)
+    done = sum(r["status"] == "done" for r in record["rows"])
+    click.echo(f"{done} of {len(record['rows'])} cells measured in {record['minutes']:.1f} min; "
+               f"{write_page(out)}")
+
+
 @cli.command("report")
 @click.argument("folder", type=click.Path(path_type=Path))
 def report(folder) -> None:

@@ -5,6 +5,8 @@
 - A **table-1 grid** (``results.csv`` + ``table1.md``): the table with the paper's numbers beside ours, the
   success curves and the videos kept beside it.
 - A **table-3 grid** (rows ``<task>/<row>-seed<k>/row.json``): its table, and each row's training plot.
+- An **audit** (``audit.json``, :mod:`rat.experiments.audit`): success and return against ε per attack, the table
+  with intervals and perturbation sizes, the attacked-episode videos, what did not run and why.
 
 The page sits in the folder and names its images and videos relatively, so the folder can be moved or served
 as it is. Nothing is fetched from elsewhere.
@@ -148,10 +150,51 @@ def grid_page(folder: Path, table: str, title: str) -> str:
     return _page(title, sections)
 
 
+def _pct(value) -> str:
+    return "–" if value is None else f"{100 * value:.1f}%"
+
+
+def _num(value) -> str:
+    return "–" if value is None else f"{value:.4g}"
+
+
+def audit_page(folder: Path) -> str:
+    """The page of a ``rat audit`` folder: success and return against ε, the table, videos, what did not run."""
+    record = json.loads((folder / "audit.json").read_text())
+    victim = record.get("victim", folder.name)
+    done = [r for r in record["rows"] if r["status"] == "done"]
+    summary = (f"<p>Victim <code>{html.escape(str(victim))}</code>; targets {html.escape(', '.join(record['targets']))};"
+               f" ε {html.escape(', '.join(f'{e:g}' for e in record['epsilons']))}; {len(done)} of "
+               f"{len(record['rows'])} cells measured in {record['minutes']:.1f} minutes (budget "
+               f"{record['budget_minutes']:g}).</p>")
+    head = ("<tr><th>target</th><th>ε</th><th>attack</th><th>reward</th><th>target reached (95% CI)</th>"
+            "<th>clean</th><th>task return attacked</th><th>clean</th><th>max ‖Δ‖</th><th>mean ‖Δ‖</th>"
+            "<th>episodes</th><th>minutes</th></tr>")
+    body = "".join(
+        f"<tr><td>{html.escape(r['target'])}</td><td class=num>{r['epsilon']:g}</td><td>{html.escape(r['attack'])}</td>"
+        f"<td>{html.escape(r['reward'])}</td><td class=num>{_pct(r['attack_success_rate'])} "
+        f"({_pct(r['ci_low'])}–{_pct(r['ci_high'])})</td><td class=num>{_pct(r['clean_success_rate'])}</td>"
+        f"<td class=num>{_num(r['attacked_return'])}</td><td class=num>{_num(r['clean_return'])}</td>"
+        f"<td class=num>{_num(r['max_perturbation'])}</td><td class=num>{_num(r['mean_perturbation'])}</td>"
+        f"<td class=num>{r['episodes']}</td><td class=num>{_num(r['minutes'])}</td></tr>" for r in done)
+    skipped = [r for r in record["rows"] if r["status"] != "done"]
+    missing = "".join(f"<li>{html.escape(r['target'])}, ε = {r['epsilon']:g}, {html.escape(r['attack'])}: "
+                      f"{html.escape(r['status'])} ({html.escape(r.get('why', ''))})</li>" for r in skipped)
+    sections = [_section("Summary", summary), _section("Success and return against ε", _media(folder, ["audit.png"])),
+                _section("Table", f"<table><thead>{head}</thead><tbody>{body}</tbody></table>"),
+                _section("Not run", f"<ul>{missing}</ul>" if missing else "<p>Every cell ran.</p>")]
+    videos = list(record.get("videos", {}).values())
+    if videos:
+        sections.insert(3, _section("Attacked episodes", _media(folder, videos)))
+    return _page(f"Audit: {victim}", sections)
+
+
 def write_page(folder: str | Path) -> Path:
     """Write the page of ``folder`` (a run, a table-1 grid or a table-3 grid) to ``folder/report.html``."""
     folder = Path(folder)
-    if (folder / "report.json").exists():
+    if (folder / "audit.json").exists():
+        text = audit_page(folder)
+    elif (folder / "report.json").exists():
         text = run_page(folder)
     elif (folder / "table1.md").exists():
         text = grid_page(folder, "table1.md", f"Table 1: {folder.name}")

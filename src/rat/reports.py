@@ -68,6 +68,8 @@ class AttackReport(_Report):
             earlier sessions included; 0 in older reports).
         clean_success_rate: the unattacked victim's success at the same target over the same
             episodes; an attack is worth only what it adds to this (``None`` in older reports).
+        attacked_return, clean_return: the environment's own (task) return, mean over the final episodes, attacked
+            and clean (``None`` in older reports).
         details: the method's own numbers.
     """
 
@@ -90,6 +92,8 @@ class AttackReport(_Report):
     train_minutes_this_session: float = 0.0
     train_minutes: float = 0.0
     clean_success_rate: float | None = None
+    attacked_return: float | None = None
+    clean_return: float | None = None
     details: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> str:

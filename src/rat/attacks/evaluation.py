@@ -66,7 +66,8 @@ class AttackEval:
             mean_perturbation=self.mean_perturbation, steps=steps, labels=labels, victim_task=d.get("victim_task"),
             train_minutes_this_session=round(minutes, 2),
             train_minutes=round(minutes if train_minutes is None else train_minutes, 2), details=details or {},
-            clean_success_rate=None if clean is None else clean.success_rate)
+            clean_success_rate=None if clean is None else clean.success_rate, attacked_return=self.result.mean_return,
+            clean_return=None if clean is None else clean.mean_return)
 
 
 def evaluate_attack(victim: Victim, perturbation: Perturbation, env: gym.Env, target: TargetBehaviour,

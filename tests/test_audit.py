@@ -1,0 +1,85 @@
+"""`rat audit` on the point environment: every cell measured, the page written with every section, a second call
+measuring only what the first left, the budget respected, and bad requests refused in one line."""
+
+import json
+
+import numpy as np
+import pytest
+from point_env import BESIDE, OFFSET, PointGoal, point_victim
+from test_rat_training import small_config
+
+from rat.attacks import AttackSetup, ThreatModel
+from rat.attacks.probe import ProbeConfig, register_steering
+from rat.attacks.simple import SimpleConfig
+from rat.errors import RatError
+from rat.experiments.audit import check_audit, run_audit
+from rat.pages import write_page
+
+register_steering("beside", lambda obs: obs[2:] + OFFSET - obs[:2])
+
+
+def setup_for(target, epsilon, reward):
+    assert target == "beside"
+    return AttackSetup(point_victim(), BESIDE, PointGoal, ThreatModel(epsilon), seed=0, reward=reward, progress=False)
+
+
+def config_for(attack, target):
+    return {"random": SimpleConfig(final_eval_episodes=20), "mad": SimpleConfig(final_eval_episodes=20),
+            "probe": ProbeConfig(restarts=4, steps=10, final_eval_episodes=20), "rat": small_config(2000)}[attack]
+
+
+@pytest.mark.slow
+def test_an_audit_measures_every_cell_writes_its_page_and_resumes(tmp_path):
+    first = run_audit(setup_for, config_for, ["beside"], [0.1, 0.05], tmp_path, 60, ["random", "probe"],
+                      echo=lambda _: None, victim="go-to-goal")
+    assert [(r["attack"], r["epsilon"], r["status"]) for r in first["rows"]] == [
+        ("random", 0.05, "done"), ("random", 0.1, "done"), ("probe", 0.05, "done"), ("probe", 0.1, "done")]
+    measured = {p: p.stat().st_mtime for p in tmp_path.glob("beside/*/*/report.json")}
+    record = run_audit(setup_for, config_for, ["beside"], [0.05, 0.1], tmp_path, 60, ["random", "mad", "probe", "rat"],
+                       echo=lambda _: None, victim="go-to-goal")
+    assert {p: p.stat().st_mtime for p in measured} == measured  # the first call's cells are not run again
+    rows = {(r["attack"], r["epsilon"]): r for r in record["rows"]}
+    assert len(rows) == 8 and all(r["status"] == "done" for r in rows.values())
+    probe, random = rows[("probe", 0.1)], rows[("random", 0.1)]
+    assert probe["attack_success_rate"] >= 0.7 > random["attack_success_rate"]  # the probe steers; random does not
+    assert probe["ci_low"] <= probe["attack_success_rate"] <= probe["ci_high"]
+    assert all(r["max_perturbation"] <= r["epsilon"] + 1e-9 for r in rows.values())
+    assert rows[("rat", 0.1)]["attacked_return"] is not None and rows[("rat", 0.1)]["clean_return"] < 0
+    assert json.loads((tmp_path / "audit.json").read_text())["rows"] == record["rows"]
+    page = write_page(tmp_path).read_text()
+    for section in ("summary", "success-and-return-against", "table", "not-run"):
+        assert f'id="{section}' in page, section
+    assert 'src="audit.png"' in page and (tmp_path / "audit.png").stat().st_size > 10_000
+    assert page.count("<tr><td>beside</td>") == 8
+
+
+def test_the_budget_is_checked_before_each_cell_and_what_did_not_run_is_said(tmp_path, monkeypatch):
+    import rat.experiments.audit as audit
+
+    clock = iter(np.arange(0, 10_000, 20.0))  # every reading of the clock: 20 seconds later
+    monkeypatch.setattr(audit.time, "perf_counter", lambda: next(clock))
+    record = run_audit(setup_for, config_for, ["beside"], [0.05, 0.1], tmp_path, 1, ["random", "mad"],
+                       echo=lambda _: None)
+    status = [(r["attack"], r["epsilon"], r["status"]) for r in record["rows"]]
+    assert status[0] == ("random", 0.05, "done") and all(s == "not run" for *_, s in status[1:])
+    assert "the budget of 1 minutes was spent" in record["rows"][-1]["why"]
+
+
+@pytest.mark.parametrize("epsilons, minutes, attacks, message", [
+    ([0.1, 0.0], 60, ["random"], "--epsilons must be budgets > 0"),
+    ([-0.1], 60, ["random"], "--epsilons must be budgets > 0"),
+    ([0.1], 0.2, ["random"], "a budget of 0.2 minutes runs no attack"),
+    ([0.1], 60, ["fgsm"], "unknown attack 'fgsm'"),
+])
+def test_bad_audit_requests_are_named(epsilons, minutes, attacks, message):
+    with pytest.raises(RatError, match=message):
+        check_audit(epsilons, minutes, attacks)
+
+
+def test_an_agent_that_does_not_fit_its_task_ends_in_one_line(tmp_path, capsys):
+    from rat.cli import main
+
+    assert main(["audit", "zoo:faucet-close-v3", "--task", "HalfCheetah-v5", "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "rat: error:" in err
+    assert not (tmp_path / "a").exists()
