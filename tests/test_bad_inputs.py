@@ -142,7 +142,7 @@ CASES = [
     ("adversary.json without its victim", lambda t, z: edited_run(t, victim=None) and
      ["attack", "eval", str(t / "edited"), "--episodes", "1"], ["does not record its victim", "edited"]),
     ("adversary.json without its target", lambda t, z: edited_run(t, target=None) and
-     ["attack", "eval", str(t / "edited"), "--episodes", "1"], ["lacks target", "edited or not written by rat"]),
+     ["attack", "eval", str(t / "edited"), "--episodes", "1"], ["lacks target", "edited, or not written by rat"]),
     ("unknown plugin", lambda t, z: ["--plugin", "not_a_module_anywhere", "list", "attacks"], ["cannot be imported"]),
     ("unknown attack", lambda t, z: ["attack", "train", "--method", "fgsm", "--out", str(t / "run")],
      ["unknown attack 'fgsm'", "rat list attacks"]),

@@ -100,7 +100,10 @@ def rat_config(preset: str = "cpu", budget: int | None = None, steps: int | None
     if not 0 < spend_by <= 1:
         raise RatError(f"spend-by must lie in (0, 1], got {spend_by}")
     pebble_overrides = pebble_overrides or {}
-    values = preset_values(preset, target) | {f"pebble.{k}": v for k, v in pebble_overrides.items()}
+    given = {f"pebble.{k}": v for k, v in pebble_overrides.items()}
+    # a field given whole (pebble.sac=SACConfig(...)) replaces the preset's settings inside it
+    values = {k: v for k, v in preset_values(preset, target).items() if not any(k.startswith(g + ".") for g in given)}
+    values |= given
     if steps:
         values["total_steps"] = steps
     if budget is not None:
