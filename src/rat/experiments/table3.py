@@ -94,18 +94,19 @@ def attack_cell(cell: tuple[Agent, str], out: str, preset: str, target: str, eps
     return {"cell": f"{agent.key}/{attack}", **table["attacks"][attack]}
 
 
-def _guarded(run, cell, directory: Path, *args) -> dict:
+def guarded_agent(agent: Agent, *args) -> dict:
+    """:func:`train_agent`, a failure row in its place if it raises (one cell cannot stop the grid)."""
     from rat.experiments.grid import guarded
 
-    return {"cell": cell.key if isinstance(cell, Agent) else f"{cell[0].key}/{cell[1]}", **guarded(run, cell, directory, *args)}
-
-
-def guarded_agent(agent: Agent, *args) -> dict:
-    return _guarded(train_agent, agent, agent.directory(args[0]), *args)
+    return {"cell": agent.key, **guarded(train_agent, agent, agent.directory(args[0]), *args)}
 
 
 def guarded_attack(cell: tuple[Agent, str], *args) -> dict:
-    return _guarded(attack_cell, cell, cell[0].directory(args[0]) / "eval" / cell[1], *args)
+    """:func:`attack_cell`, a failure row in its place if it raises."""
+    from rat.experiments.grid import guarded
+
+    agent, attack = cell
+    return {"cell": f"{agent.key}/{attack}", **guarded(attack_cell, cell, agent.directory(args[0]) / "eval" / attack, *args)}
 
 
 def write_row(agent: Agent, attacks: list[str], out: str | Path, preset: str, target: str,

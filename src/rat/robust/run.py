@@ -222,7 +222,7 @@ def attack_agent(victim_spec: str, out: str | Path, target: str, threat: ThreatM
     from rat.attacks.base import check_reward, get_attack
     from rat.experiments.runner import attack_config, attack_setup, evaluate_saved_attack, train_attack
 
-    rows, clean = {}, None
+    rows = {}
     for method in attacks:
         directory = Path(out) / method
         cached = directory / "table-row.json"
@@ -235,7 +235,7 @@ def attack_agent(victim_spec: str, out: str | Path, target: str, threat: ThreatM
             setup = attack_setup(victim_spec, target, threat, seed, reward, progress=progress)
             train_attack(method, setup, attack_config(method, preset, budget, None, target), directory)
         result = evaluate_saved_attack(directory, episodes, seed, progress=progress)
-        res, clean = result["attack"].result, result["clean"]
+        res, clean = result["attack"].result, result["clean"]  # clean: the same episodes unattacked
         rows[method] = {"reward": reward, "return": res.mean_return, "return_std": res.std_return,
                         "target_success": res.success_rate, "episodes": res.episodes,
                         "clean_return": clean.mean_return, "clean_return_std": clean.std_return,
