@@ -118,6 +118,37 @@ def test_the_worst_case_term_moves_the_actors_gradient_and_not_the_critics():
     assert torch.equal(q_w, flat(term.q))  # and Q_w is moved only by its own Bellman update
 
 
+def test_the_warm_up_explores_around_the_starting_actor_and_the_anchor_pulls_back_to_it(tmp_path):
+    cfg = config("rat-wocar", wocar_critic="worst-case", wocar_kappa=0.0, warmup_noise=0.3, anchor=1.0)
+    _, trainer, _ = prepare_robust(cfg, point_sac_victim(updates=200), BESIDE, PointGoal, EPS, tmp_path / "run",
+                                   None, describe={"task": "point"}, progress=False)
+    assert trainer.term is None  # κ = 0: plain fine-tuning, no worst-case Q to learn
+    assert not trainer.agent.config.learnable_temperature  # fixed at finetune_temperature
+    assert trainer.agent.alpha.item() == pytest.approx(0.001)
+    while trainer.phase == "warm-up":
+        trainer.advance()
+    n = len(trainer.buffer)
+    obs, actions = (torch.as_tensor(a[:n], dtype=torch.float32) for a in (trainer.buffer.obs, trainer.buffer.action))
+    with torch.no_grad():
+        spread = (actions - trainer.anchor.start(obs)).std().item()
+    assert 0.2 < spread < 0.35  # σ = 0.3 around μ₀ (less where clipped), not the actor's own tiny spread
+    start = trainer.anchor.start
+    with torch.no_grad():  # move the agent's actor away from μ₀, then step on the anchor alone
+        for p in trainer.agent.actor.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    distance = lambda: ((trainer.agent.actor(obs) - start(obs)) ** 2).sum(-1).mean().item()  # noqa: E731
+    before = distance()
+    trainer.metrics["q_mean"] = 10.0
+    optimizer = torch.optim.SGD(trainer.agent.actor.parameters(), lr=1e-3)
+    for _ in range(20):
+        action, _ = trainer.agent.actor.sample(obs)
+        loss = trainer.anchor(obs, action).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert distance() < 0.8 * before
+
+
 class Interrupt(Exception):
     pass
 
@@ -212,9 +243,8 @@ def test_a_rat_atla_agent_beats_the_undefended_victim_under_a_fixed_attack(tmp_p
     from rat.attacks.evaluation import evaluate_attack
 
     cfg = config("rat-atla", agent_steps=4000, phase_steps=400, adversary_phase_steps=400, first_adversary_steps=2000,
-                 critic_warmup=2000, warmup_updates=4,
-                 sac=SACConfig(hidden=64, layers=2, batch_size=128, lr=3e-4, init_temperature=0.01,
-                               learnable_temperature=False))
+                 critic_warmup=2000, warmup_updates=4, warmup_noise=0.0, anchor=0.0, finetune_temperature=0.01,
+                 sac=SACConfig(hidden=64, layers=2, batch_size=128, lr=3e-4))  # the point environment's recipe
     victim = point_sac_victim()
     _, trainer, _ = prepare_robust(cfg, victim, BESIDE, PointGoal, EPS, tmp_path / "run", small_config(6000),
                                    describe={"task": "point"}, progress=False)

@@ -9,6 +9,8 @@
   steps on the perturbation, in place of WocaR's interval bounds on the action); the term is −κ·Q_w(s, ã).
 - :func:`state_smoothness` — SA-PPO's state regulariser in SAC form (PA-ATLA's agent uses it): λ·‖μ(s̃*) −
   μ(s)‖², s̃* the observation in the ball that moves the actor's mean action most.
+- :class:`Anchor` — λ·|Q̄|·‖ã − μ₀(s)‖², μ₀ the actor the agent started from (TD3+BC's behaviour term and
+  its Q scale): fine-tuning stays near the actor whose value the critic has learnt.
 
 κ may ramp from 0 (WocaR's schedule) or stay constant (the release's).
 """
@@ -115,3 +117,15 @@ def state_smoothness(actor: TanhGaussianActor, threat: ThreatModel, weight: floa
         return weight * ((actor(worst) - clean) ** 2).sum(-1)
 
     return term
+
+
+class Anchor:
+    """λ·|Q̄|·‖ã − μ₀(s)‖² per row: ``start`` is μ₀ (frozen), ``q_scale`` gives the critic's mean |Q| now."""
+
+    def __init__(self, start: TanhGaussianActor, weight: float, q_scale: Callable[[], float]):
+        self.start, self.weight, self.q_scale = start.requires_grad_(False), weight, q_scale
+
+    def __call__(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            reference = self.start(obs)
+        return self.weight * self.q_scale() * ((action - reference) ** 2).sum(-1)

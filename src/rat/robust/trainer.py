@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import gymnasium as gym
@@ -42,7 +42,7 @@ from rat.device import resolve_device
 from rat.errors import RatError
 from rat.eval import evaluate
 from rat.robust.adversaries import PhaseAdversary
-from rat.robust.terms import IntentionValue, WorstCaseValue, kappa_at, state_smoothness
+from rat.robust.terms import Anchor, IntentionValue, WorstCaseValue, kappa_at, state_smoothness
 from rat.runs import restore_rng_state, rng_state
 from rat.victims.base import ModuleVictim
 
@@ -69,6 +69,16 @@ class RobustConfig:
     first_adversary_steps: int = 50_000  #: phase 0, the adversary against the starting agent (RAT's cpu preset)
     critic_warmup: int = 10_000  #: finetune: clean steps of the starting actor, critic-only updates
     warmup_updates: int = 6  #: finetune: critic updates per warm-up step (Q must near the actor's value first)
+    #: finetune: σ of the Gaussian noise on the starting actor's warm-up actions, so that the critic learns Q
+    #: around the actor's actions and not only on them (the zoo's actors are near-deterministic)
+    warmup_noise: float = 0.3
+    #: finetune: weight of ‖ã − μ₀(s)‖² in the actor's loss, μ₀ the starting actor, in units of the critic's
+    #: mean |Q| (TD3+BC's scale, 1/2.5); 0: off. Without it the first actor updates lose the task (docs/robust.md)
+    anchor: float = 0.4
+    anchor_schedule: str = "decay"  #: finetune: the anchor's weight constant, or decaying linearly to 0 over agent_steps
+    #: finetune: the agent's entropy temperature, fixed (the zoo's actors sit far below SAC's target entropy,
+    #: and a learnt temperature would widen them); 0: SAC's own, learnt from sac.init_temperature
+    finetune_temperature: float = 0.001
     random_steps: int = 5_000  #: scratch: uniform random actions first
     adversary_sample: bool = True  #: the agent's phases see Δ sampled from the adversary (ATLA's), else its mean
     adversary_reward: str = "target"  #: atla, pa-atla: the PPO adversary's reward, the target's or neg-task (ATLA's −r)
@@ -90,7 +100,8 @@ class RobustConfig:
         if self.method not in METHODS:
             raise RatError(f"unknown robust-training method '{self.method}'; use one of: {', '.join(METHODS)}")
         choices = {"init": ("finetune", "scratch"), "adversary_reward": ("target", "neg-task"),
-                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear")}
+                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear"),
+                   "anchor_schedule": ("constant", "decay")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise RatError(f"{name.replace('_', '-')} must be one of {', '.join(allowed)}, got '{getattr(self, name)}'")
@@ -98,11 +109,18 @@ class RobustConfig:
                      "final_eval_episodes", "checkpoint_every", "worst_case_steps", "warmup_updates"):
             if getattr(self, name) <= 0:
                 raise RatError(f"{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
-        for name in ("first_adversary_steps", "critic_warmup", "random_steps", "wocar_kappa", "state_reg"):
+        for name in ("first_adversary_steps", "critic_warmup", "random_steps", "wocar_kappa", "state_reg",
+                     "warmup_noise", "anchor", "finetune_temperature"):
             if getattr(self, name) < 0:
                 raise RatError(f"{name.replace('_', '-')} must not be negative, got {getattr(self, name)}")
         if self.needs_adversary and self.first_adversary_steps == 0:
             raise RatError(f"{self.method} needs an adversary trained first: give first-adversary-steps > 0")
+
+    def agent_sac(self) -> SACConfig:
+        """The agent's SAC settings: ``sac``, its temperature fixed at ``finetune_temperature`` when fine-tuning."""
+        if self.init == "finetune" and self.finetune_temperature > 0:
+            return replace(self.sac, learnable_temperature=False, init_temperature=self.finetune_temperature)
+        return self.sac
 
     @property
     def alternates(self) -> bool:
@@ -171,7 +189,7 @@ class RobustTrainer:
         self.device = resolve_device(cfg.device)
         self.rng = np.random.default_rng(cfg.seed + seeds.ROBUST)
         obs_dim, act_dim = agent_env.observation_space.shape[0], agent_env.action_space.shape[0]
-        self.agent = SAC(obs_dim, act_dim, cfg.sac, device=self.device)
+        self.agent = SAC(obs_dim, act_dim, cfg.agent_sac(), device=self.device)
         if actor is not None:
             self.agent.actor.load_state_dict(actor.state_dict())
         self.victim.load_policy(self.agent.actor.state_dict())  # phase 0's adversary trains against the starting agent
@@ -179,10 +197,14 @@ class RobustTrainer:
         self.adversary = adversary
         self.env = AttackedObservation(agent_env, self._shown_delta, self.threat)
         self.term = None  # the agent's extra actor-loss term (RAT-WocaR)
-        if cfg.method == "rat-wocar" and cfg.wocar_critic == "worst-case":
+        if cfg.method == "rat-wocar" and cfg.wocar_critic == "worst-case" and cfg.wocar_kappa > 0:
             self.term = WorstCaseValue(obs_dim, act_dim, self.threat, cfg.sac.hidden, cfg.sac.layers, cfg.sac.lr,
                                        cfg.sac.gamma, cfg.sac.tau, cfg.worst_case_steps).to(self.device)
         self.regulariser = state_smoothness(self.agent.actor, self.threat, cfg.state_reg) if cfg.state_reg else None
+        self.anchor = None  # ‖ã − μ₀(s)‖², μ₀ the frozen starting actor
+        if cfg.anchor and actor is not None:
+            self.anchor = Anchor(copy.deepcopy(actor).to(self.device), cfg.anchor,
+                                 lambda: abs(self.metrics.get("q_mean", 0.0)))
         self.phase = "warm-up" if (cfg.init == "finetune" and cfg.critic_warmup) or cfg.init == "scratch" else "adversary"
         if self.phase == "adversary" and adversary is None:
             self.phase = "agent"
@@ -252,9 +274,13 @@ class RobustTrainer:
             self.delta = None
 
     def _act(self, obs: np.ndarray) -> np.ndarray:
-        if self.config.init == "scratch" and self.phase == "warm-up":
+        cfg = self.config
+        if self.phase == "warm-up" and cfg.init == "scratch":
             return self.env.action_space.sample()
-        return self.agent.act(obs)
+        action = self.agent.act(obs)
+        if self.phase == "warm-up" and cfg.warmup_noise:
+            action = np.clip(action + cfg.warmup_noise * self.rng.standard_normal(action.shape), -1.0, 1.0)
+        return action
 
     def _agent_step(self) -> dict[str, float] | None:
         cfg = self.config
@@ -291,12 +317,14 @@ class RobustTrainer:
         return out
 
     def _extra(self):
-        terms = [t for t in (self.term, self.regulariser) if t is not None]
+        terms = [t for t in (self.term, self.regulariser, self.anchor) if t is not None]
         if not terms:
             return None
         if self.term is not None:
             self.term.kappa = kappa_at(self.config.wocar_kappa, self.config.wocar_schedule,
                                        self.agent_steps / self.config.agent_steps)
+        if self.anchor is not None and self.config.anchor_schedule == "decay":
+            self.anchor.weight = self.config.anchor * max(0.0, 1.0 - self.agent_steps / self.config.agent_steps)
         return lambda obs, action: sum(t(obs, action) for t in terms)
 
     def _update(self, actor: bool) -> None:
