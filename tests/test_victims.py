@@ -1,3 +1,5 @@
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -102,3 +104,21 @@ def test_unreadable_sb3_file_is_a_one_line_error(tmp_path):
         load_victim(str(bad))
     with pytest.raises(RatError, match="no victim at"):
         load_victim(str(tmp_path / "missing"))
+
+
+def test_the_foreign_victims_script_trains_saves_and_keeps_an_sb3_agent(tmp_path, capsys):
+    from benchmark_scripts import load
+
+    foreign = load("foreign_victims")
+    args = ["--only", "door-close-v3-sac", "--steps", "200", "--eval-every", str(10**6), "--out", str(tmp_path)]
+    record = foreign.main(args)["door-close-v3-sac"]
+    assert record["trained_steps"] == 200 and record["episodes"] == 20 and 0.0 <= record["clean_success"] <= 1.0
+    from rat.victims import load_victim
+
+    victim = load_victim(str(tmp_path / "door-close-v3-sac.zip"))  # read as a user's file would be
+    assert victim.observation_space.shape == (39,) and victim.meta["source"] == "stable-baselines3"
+    assert json.loads((tmp_path / "victims.json").read_text())["door-close-v3-sac"]["held_out"] is False
+    foreign.main(args)
+    assert "trained already" in capsys.readouterr().out  # a finished agent is kept
+    with pytest.raises(SystemExit):
+        foreign.main(["--only", "door-close-v3-ppo", "--out", str(tmp_path)])
