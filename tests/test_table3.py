@@ -14,6 +14,12 @@ def row(name, seed, ret, std, success, clean=(100.0, 10.0)):
                         "random": {"return": 90.0, "return_std": 0.0, "target_success": 0.0}}}
 
 
+def table_rows(text: str, part: int = 0) -> dict[str, str]:
+    """The rows of the page's first table (``part=0``) or of its tests against the undefended victim (1)."""
+    chunk = text.split("Against the undefended victim")[part]
+    return {line.split(" | ")[0]: line for line in chunk.splitlines() if line.startswith("| ")}
+
+
 def test_pooled_is_the_mean_and_std_of_all_the_episodes():
     import numpy as np
 
@@ -25,11 +31,23 @@ def test_pooled_is_the_mean_and_std_of_all_the_episodes():
 def test_the_table_puts_each_row_beside_the_papers_and_leaves_random_out_of_the_average():
     text = markdown_table3([row("undefended", 0, 10.0, 5.0, 0.9), row("rat-atla", 0, 40.0, 4.0, 0.2),
                             row("rat-atla", 1, 60.0, 4.0, 0.4)])
-    lines = {line.split(" | ")[0]: line for line in text.splitlines() if line.startswith("| ")}
+    lines = table_rows(text)
     assert "| undefended (zoo SAC) | 1 | 100 ± 10 | **10 ± 5** (90%) | **90 ± 0** (0%) | 10 |" in text
     atla = lines["| RAT-ATLA"]
     assert "| 2 |" in atla and "**50 ± 11** (30%) / 1048" in atla  # two seeds pooled; the paper's 1048
     assert atla.endswith("| 50 / 947 |")  # the attacks' mean without random's; the paper's avg R
+
+
+def test_each_defence_is_tested_against_the_undefended_victim_under_rat():
+    defended = dict(row("rat-atla", 0, 40.0, 4.0, 0.2), train_minutes=95.0)
+    worse = dict(row("atla", 0, 9.0, 5.0, 0.9), train_minutes=80.0)
+    text = markdown_table3([row("undefended", 0, 10.0, 5.0, 0.9), defended, worse])
+    lines = table_rows(text, 1)
+    rat_atla = lines["| RAT-ATLA"].split(" | ")
+    assert rat_atla[3] == "20/100" and float(rat_atla[2]) < 1e-50 and float(rat_atla[4]) < 1e-20
+    assert rat_atla[5] == "95 |"  # its minutes
+    atla = lines["| ATLA (SAC agent)"].split(" | ")
+    assert float(atla[2]) > 0.5 and float(atla[4]) > 0.4  # no better: nothing significant
 
 
 @pytest.mark.slow

@@ -220,5 +220,39 @@ def markdown_table3(rows: list[dict]) -> str:
                 average += f" / {np.mean([v[0] for v in paper.values()]):.0f}"
             lines.append(f"| {ROW_NAMES[name]} | {len(mine)} | {clean[0]:.0f} ± {clean[1]:.0f} | "
                          + " | ".join(cells) + f" | {average} |")
-        lines.append("")
+        lines += ["", *against_undefended([r for r in rows if r["task"] == task])]
     return "\n".join(lines)
+
+
+def against_undefended(rows: list[dict], attack: str = "rat") -> list[str]:
+    """Each defended row of one task against the undefended victim under ``attack``: the task return (Welch's
+    one-sided t-test that the defence's is higher, from the pooled means and stds) and the target's success
+    (Fisher's exact one-sided test that it is lower), with the minutes its agent took to train."""
+    from scipy import stats
+
+    def pooled_cell(name):
+        cells = [(r["attacks"][attack], r) for r in rows if r["row"] == name and attack in r["attacks"]]
+        if not cells:
+            return None
+        mean, std = pooled([c["return"] for c, _ in cells], [c["return_std"] for c, _ in cells])
+        n = sum(c.get("episodes", 100) for c, _ in cells)
+        hits = round(sum(c["target_success"] * c.get("episodes", 100) for c, _ in cells))
+        minutes = [r["train_minutes"] for _, r in cells if "train_minutes" in r]
+        return mean, std, n, hits, minutes
+
+    base = pooled_cell("undefended")
+    defended = [(name, cell) for name in ROWS if name != "undefended" and (cell := pooled_cell(name))]
+    if base is None or not defended:
+        return []
+    lines = [f"Against the undefended victim under {attack} (return higher: Welch, one-sided; target reached less: "
+             "Fisher, one-sided):", "",
+             "| row | return | p (higher) | target reached | p (less) | minutes to train |",
+             "| --- | ---: | ---: | ---: | ---: | ---: |",
+             f"| {ROW_NAMES['undefended']} | {base[0]:.0f} | | {base[3]}/{base[2]} | | |"]
+    for name, (mean, std, n, hits, minutes) in defended:
+        p_return = stats.ttest_ind_from_stats(mean, std, n, base[0], base[1], base[2], equal_var=False,
+                                              alternative="greater").pvalue
+        p_target = stats.fisher_exact([[hits, n - hits], [base[3], base[2] - base[3]]], alternative="less").pvalue
+        took = ", ".join(f"{m:.0f}" for m in minutes) or "–"
+        lines.append(f"| {ROW_NAMES[name]} | {mean:.0f} | {p_return:.2g} | {hits}/{n} | {p_target:.2g} | {took} |")
+    return lines + [""]
