@@ -140,6 +140,16 @@ def list_attacks() -> list[Attack]:
     return _REGISTRY.all()
 
 
+#: what SA-RL and PA-AD learn from when measured beside RAT (table 3, audits): the target's true reward,
+#: the paper's oracle variants; every other attack learns from its first reward (RAT: labels)
+MEASURED_REWARD = {"sa-rl": "oracle", "pa-ad": "oracle"}
+
+
+def measured_reward(attack: Attack) -> str:
+    """The reward ``attack`` learns from when it is measured beside RAT (:data:`MEASURED_REWARD`)."""
+    return MEASURED_REWARD.get(attack.name, attack.rewards[0])
+
+
 def check_reward(attack: Attack, reward: str) -> str:
     """``reward`` if ``attack`` supports it, else a one-line error naming the ones it does."""
     if reward not in attack.rewards:

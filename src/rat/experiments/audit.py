@@ -20,12 +20,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rat.attacks.base import AttackSetup, get_attack
+from rat.attacks.base import AttackSetup, get_attack, measured_reward
 from rat.errors import RatError
 from rat.reports import AttackReport
 
 AUDIT_ATTACKS = ("random", "mad", "probe", "sa-rl", "rat")  #: cheapest first
-REWARD_OF = {"sa-rl": "oracle", "pa-ad": "oracle", "rat": "labels"}  #: the reward each learns from in an audit
 FIELDS = ["target", "epsilon", "attack", "reward", "status", "attack_success_rate", "ci_low", "ci_high",
           "attacked_return", "clean_success_rate", "clean_return", "max_perturbation", "mean_perturbation", "episodes",
           "minutes", "why"]
@@ -61,7 +60,7 @@ def run_audit(setup_for: Callable[[str, float, str], AttackSetup], config_for: C
             for epsilon in epsilons:
                 directory = out / target / f"eps{epsilon:g}" / attack
                 row = {"target": target, "epsilon": epsilon, "attack": attack,
-                       "reward": REWARD_OF.get(attack, "none")}
+                       "reward": measured_reward(get_attack(attack))}
                 left = budget_minutes - (time.perf_counter() - started) / 60
                 if (directory / "report.json").exists():
                     rows.append(row | _measured(AttackReport.read(directory), "done"))

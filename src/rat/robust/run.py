@@ -219,7 +219,7 @@ def attack_agent(victim_spec: str, out: str | Path, target: str, threat: ThreatM
     ``out/<attack>/table-row.json``). RAT learns from labels; SA-RL and PA-AD from the target's oracle reward.
 
     Returns table 3's cells: per attack the task return (mean, std) and the target's success, and the clean return."""
-    from rat.attacks.base import check_reward, get_attack
+    from rat.attacks.base import get_attack, measured_reward
     from rat.experiments.runner import attack_config, attack_setup, evaluate_saved_attack, train_attack
 
     rows = {}
@@ -230,7 +230,7 @@ def attack_agent(victim_spec: str, out: str | Path, target: str, threat: ThreatM
             rows[method] = json.loads(cached.read_text())
             continue
         attack = get_attack(method)
-        reward = check_reward(attack, "oracle" if method in ("sa-rl", "pa-ad") else attack.rewards[0])
+        reward = measured_reward(attack)
         if not (directory / "report.json").exists():
             setup = attack_setup(victim_spec, target, threat, seed, reward, progress=progress)
             train_attack(method, setup, attack_config(method, preset, budget, None, target), directory)
