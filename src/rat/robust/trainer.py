@@ -4,7 +4,9 @@ One trainer serves every method (:data:`METHODS`). What differs is the adversary
 or none) and the term added to the agent's actor loss (:mod:`rat.robust.terms`):
 
 1. **Critic warm-up** (``init="finetune"``): the agent starts from the victim's actor; the zoo ships actors
-   alone, so the critic first learns from ``critic_warmup`` clean steps of that actor, the actor frozen.
+   alone, so the critic first learns from ``critic_warmup`` clean steps of that actor (its actions perturbed by
+   ``warmup_noise``), the actor frozen. Afterwards the actor's loss keeps an :class:`~rat.robust.terms.Anchor` to
+   the starting actor and the temperature stays at ``finetune_temperature`` (docs/robust.md says why).
    ``init="scratch"``: a fresh agent, ``random_steps`` uniform actions first.
 2. **Phase 0**: the adversary trains ``first_adversary_steps`` against the frozen starting agent.
 3. Then, until the agent has made ``agent_steps`` steps: an **agent phase** (SAC on the task reward; every
