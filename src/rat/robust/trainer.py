@@ -77,7 +77,6 @@ class RobustConfig:
     #: finetune: weight of ‖ã − μ₀(s)‖² in the actor's loss, μ₀ the starting actor, in units of the critic's
     #: mean |Q| (TD3+BC's scale, 1/2.5); 0: off. Without it the first actor updates lose the task (docs/robust.md)
     anchor: float = 0.4
-    anchor_schedule: str = "decay"  #: finetune: the anchor's weight constant, or decaying linearly to 0 over agent_steps
     #: finetune: the agent's entropy temperature, fixed (the zoo's actors sit far below SAC's target entropy,
     #: and a learnt temperature would widen them); 0: SAC's own, learnt from sac.init_temperature
     finetune_temperature: float = 0.001
@@ -102,8 +101,7 @@ class RobustConfig:
         if self.method not in METHODS:
             raise RatError(f"unknown robust-training method '{self.method}'; use one of: {', '.join(METHODS)}")
         choices = {"init": ("finetune", "scratch"), "adversary_reward": ("target", "neg-task"),
-                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear"),
-                   "anchor_schedule": ("constant", "decay")}
+                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise RatError(f"{name.replace('_', '-')} must be one of {', '.join(allowed)}, got '{getattr(self, name)}'")
@@ -325,8 +323,6 @@ class RobustTrainer:
         if self.term is not None:
             self.term.kappa = kappa_at(self.config.wocar_kappa, self.config.wocar_schedule,
                                        self.agent_steps / self.config.agent_steps)
-        if self.anchor is not None and self.config.anchor_schedule == "decay":
-            self.anchor.weight = self.config.anchor * max(0.0, 1.0 - self.agent_steps / self.config.agent_steps)
         return lambda obs, action: sum(t(obs, action) for t in terms)
 
     def _update(self, actor: bool) -> None:
