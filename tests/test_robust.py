@@ -138,7 +138,6 @@ def test_the_warm_up_explores_around_the_starting_actor_and_the_anchor_pulls_bac
             p.add_(0.05 * torch.randn_like(p))
     distance = lambda: ((trainer.agent.actor(obs) - start(obs)) ** 2).sum(-1).mean().item()  # noqa: E731
     before = distance()
-    trainer.metrics["q_mean"] = 10.0
     optimizer = torch.optim.SGD(trainer.agent.actor.parameters(), lr=1e-3)
     for _ in range(20):
         action, _ = trainer.agent.actor.sample(obs)

@@ -120,12 +120,14 @@ def state_smoothness(actor: TanhGaussianActor, threat: ThreatModel, weight: floa
 
 
 class Anchor:
-    """λ·|Q̄|·‖ã − μ₀(s)‖² per row: ``start`` is μ₀ (frozen), ``q_scale`` gives the critic's mean |Q| now."""
+    """λ·|Q̄|·‖ã − μ₀(s)‖² per row: ``start`` is μ₀ (frozen); |Q̄| is the batch's mean |min Q(s, ã)| under
+    ``critic`` (the agent's own), taken as a constant, as TD3+BC scales its behaviour term."""
 
-    def __init__(self, start: TanhGaussianActor, weight: float, q_scale: Callable[[], float]):
-        self.start, self.weight, self.q_scale = start.requires_grad_(False), weight, q_scale
+    def __init__(self, start: TanhGaussianActor, critic: TwinCritic, weight: float):
+        self.start, self.critic, self.weight = start.requires_grad_(False), critic, weight
 
     def __call__(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
             reference = self.start(obs)
-        return self.weight * self.q_scale() * ((action - reference) ** 2).sum(-1)
+            scale = torch.min(*self.critic(obs, action)).abs().mean()
+        return self.weight * scale * ((action - reference) ** 2).sum(-1)

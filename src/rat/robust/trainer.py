@@ -203,8 +203,7 @@ class RobustTrainer:
         self.regulariser = state_smoothness(self.agent.actor, self.threat, cfg.state_reg) if cfg.state_reg else None
         self.anchor = None  # ‖ã − μ₀(s)‖², μ₀ the frozen starting actor
         if cfg.anchor and actor is not None:
-            self.anchor = Anchor(copy.deepcopy(actor).to(self.device), cfg.anchor,
-                                 lambda: abs(self.metrics.get("q_mean", 0.0)))
+            self.anchor = Anchor(copy.deepcopy(actor).to(self.device), self.agent.critic, cfg.anchor)
         self.phase = "warm-up" if (cfg.init == "finetune" and cfg.critic_warmup) or cfg.init == "scratch" else "adversary"
         if self.phase == "adversary" and adversary is None:
             self.phase = "agent"
