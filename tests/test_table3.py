@@ -10,8 +10,8 @@ from rat.experiments.table3 import markdown_table3, pooled
 def row(name, seed, ret, std, success, clean=(100.0, 10.0)):
     return {"task": "faucet-close-v3", "row": name, "seed": seed, "target": "reach", "epsilon": 0.1, "norm": "linf",
             "preset": "cpu", "clean_return": clean[0], "clean_return_std": clean[1],
-            "attacks": {"rat": {"return": ret, "return_std": std, "target_success": success},
-                        "random": {"return": 90.0, "return_std": 0.0, "target_success": 0.0}}}
+            "attacks": {"rat": {"return": ret, "return_std": std, "target_success": success, "episodes": 100},
+                        "random": {"return": 90.0, "return_std": 0.0, "target_success": 0.0, "episodes": 100}}}
 
 
 def table_rows(text: str, part: int = 0) -> dict[str, str]:

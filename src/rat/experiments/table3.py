@@ -235,8 +235,8 @@ def against_undefended(rows: list[dict], attack: str = "rat") -> list[str]:
         if not cells:
             return None
         mean, std = pooled([c["return"] for c, _ in cells], [c["return_std"] for c, _ in cells])
-        n = sum(c.get("episodes", 100) for c, _ in cells)
-        hits = round(sum(c["target_success"] * c.get("episodes", 100) for c, _ in cells))
+        n = sum(c["episodes"] for c, _ in cells)
+        hits = round(sum(c["target_success"] * c["episodes"] for c, _ in cells))
         minutes = [r["train_minutes"] for _, r in cells if "train_minutes" in r]
         return mean, std, n, hits, minutes
 
