@@ -10,12 +10,12 @@ from point_env import BESIDE, PointGoal, point_sac_victim, point_victim
 from safetensors.torch import load_file
 from test_rat_training import small_config
 
-from rat.agents.sac import SACConfig
+from rat.agents.sac import SAC, SACConfig
 from rat.attacks.rl import PPOConfig
 from rat.attacks.threat import ThreatModel
 from rat.errors import RatError
 from rat.robust import RobustConfig, RobustTrainer, prepare_robust, train_robust
-from rat.robust.terms import WorstCaseValue
+from rat.robust.terms import Anchor, WorstCaseValue
 
 EPS = ThreatModel(0.1)
 
@@ -77,12 +77,14 @@ def test_the_agents_buffer_holds_the_perturbed_observations_it_was_shown(tmp_pat
         trainer.advance()
     wrapper, checked = trainer.env, 0
     while trainer.phase == "agent":
-        seen = trainer.obs
+        seen, true = trainer.obs, wrapper._last_true
         trainer.advance()
         if seen is None:  # the episode's first step: its observation came from the reset inside advance()
             continue
         i = trainer.buffer.last_index
         np.testing.assert_allclose(trainer.buffer.obs[i], seen, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(trainer.true_obs[i], true, rtol=0, atol=1e-6)  # beside it, the true s under s̃
+        assert np.abs(seen - true).max() > 1e-4
         true_next = wrapper._last_true
         shown_next = trainer.buffer.next_obs[i]
         assert np.abs(shown_next - true_next).max() <= 0.1 + 1e-6  # inside the ε-ball of the true next state
@@ -146,6 +148,18 @@ def test_the_warm_up_explores_around_the_starting_actor_and_the_anchor_pulls_bac
         loss.backward()
         optimizer.step()
     assert distance() < 0.8 * before
+
+
+def test_the_anchor_takes_the_starting_actor_at_the_true_observation():
+    actor = point_sac_victim(updates=200).policy
+    agent = SAC(4, 2, SACConfig(hidden=32, layers=2))
+    anchor = Anchor(copy.deepcopy(actor), agent.critic, weight=1.0)
+    true_obs = torch.randn(64, 4)
+    seen = true_obs + 0.1 * torch.sign(torch.randn(64, 4))
+    with torch.no_grad():
+        answer = actor(true_obs)
+    assert torch.all(anchor(seen, answer, true_obs) == 0)  # the true state's answer, wherever the agent looked
+    assert torch.all(anchor(seen, answer) > 0)  # without it, μ₀ is taken where the agent looked
 
 
 class Interrupt(Exception):

@@ -10,7 +10,8 @@
 - :func:`state_smoothness` — SA-PPO's state regulariser in SAC form (PA-ATLA's agent uses it): λ·‖μ(s̃*) −
   μ(s)‖², s̃* the observation in the ball that moves the actor's mean action most.
 - :class:`Anchor` — λ·|Q̄|·‖ã − μ₀(s)‖², μ₀ the actor the agent started from (TD3+BC's behaviour term and
-  its Q scale): fine-tuning stays near the actor whose value the critic has learnt.
+  its Q scale), ã drawn at the perturbed observation s̃ and μ₀ taken at the true one s: fine-tuning stays near
+  the actor whose value the critic has learnt, and near what that actor does when nothing is perturbed.
 
 κ may ramp from 0 (WocaR's schedule) or stay constant (the release's).
 """
@@ -120,14 +121,19 @@ def state_smoothness(actor: TanhGaussianActor, threat: ThreatModel, weight: floa
 
 
 class Anchor:
-    """λ·|Q̄|·‖ã − μ₀(s)‖² per row: ``start`` is μ₀ (frozen); |Q̄| is the batch's mean |min Q(s, ã)| under
-    ``critic`` (the agent's own), taken as a constant, as TD3+BC scales its behaviour term."""
+    """λ·|Q̄|·‖ã − μ₀(s)‖² per row: ``start`` is μ₀ (frozen); |Q̄| is the batch's mean |min Q(s̃, ã)| under
+    ``critic`` (the agent's own), taken as a constant, as TD3+BC scales its behaviour term.
+
+    ``obs`` is what the agent saw (s̃, where ã was drawn) and ``true_obs`` the unperturbed observation at which
+    μ₀ is taken (``obs`` itself if not given). Anchored at s̃, the agent would be held to the starting actor's
+    answer to the perturbation, which is what the attack exploits; anchored at s it is pulled to that actor's
+    answer to the true state (docs/robust.md#the-anchor has the measurement)."""
 
     def __init__(self, start: TanhGaussianActor, critic: TwinCritic, weight: float):
         self.start, self.critic, self.weight = start.requires_grad_(False), critic, weight
 
-    def __call__(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def __call__(self, obs: torch.Tensor, action: torch.Tensor, true_obs: torch.Tensor | None = None) -> torch.Tensor:
         with torch.no_grad():
-            reference = self.start(obs)
+            reference = self.start(obs if true_obs is None else true_obs)
             scale = torch.min(*self.critic(obs, action)).abs().mean()
         return self.weight * scale * ((action - reference) ** 2).sum(-1)

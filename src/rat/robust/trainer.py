@@ -77,6 +77,9 @@ class RobustConfig:
     #: finetune: weight of ‖ã − μ₀(s)‖² in the actor's loss, μ₀ the starting actor, in units of the critic's
     #: mean |Q| (TD3+BC's scale, 1/2.5); 0: off. Without it the first actor updates lose the task (docs/robust.md)
     anchor: float = 0.4
+    #: finetune: where μ₀ is taken in the anchor: at the true observation (the agent pulled to what μ₀ does
+    #: unperturbed) or at the perturbed one it saw (μ₀'s answer to the attack)
+    anchor_on: str = "true"
     #: finetune: the agent's entropy temperature, fixed (the zoo's actors sit far below SAC's target entropy,
     #: and a learnt temperature would widen them); 0: SAC's own, learnt from sac.init_temperature
     finetune_temperature: float = 0.001
@@ -101,7 +104,8 @@ class RobustConfig:
         if self.method not in METHODS:
             raise RatError(f"unknown robust-training method '{self.method}'; use one of: {', '.join(METHODS)}")
         choices = {"init": ("finetune", "scratch"), "adversary_reward": ("target", "neg-task"),
-                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear")}
+                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear"),
+                   "anchor_on": ("true", "seen")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise RatError(f"{name.replace('_', '-')} must be one of {', '.join(allowed)}, got '{getattr(self, name)}'")
@@ -194,6 +198,7 @@ class RobustTrainer:
             self.agent.actor.load_state_dict(actor.state_dict())
         self.victim.load_policy(self.agent.actor.state_dict())  # phase 0's adversary trains against the starting agent
         self.buffer = ReplayBuffer(obs_dim, act_dim, cfg.buffer_capacity)
+        self.true_obs = np.zeros_like(self.buffer.obs)  # beside the buffer, row for row: s under each stored s̃
         self.adversary = adversary
         self.env = AttackedObservation(agent_env, self._shown_delta, self.threat)
         self.term = None  # the agent's extra actor-loss term (RAT-WocaR)
@@ -284,17 +289,19 @@ class RobustTrainer:
     def _agent_step(self) -> dict[str, float] | None:
         cfg = self.config
         if self.obs is None:
-            self.obs, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
+            self.obs, info = self.env.reset(seed=int(self.rng.integers(2**31)))
+            self.true = info["true_obs"]
             self.ep_return, self.succeeded, self.target_hit = 0.0, False, False
             self.target_test = self.target.episode_success()
         seen = self.obs
         action = self._act(seen)
         next_seen, reward, terminated, truncated, info = self.env.step(action)
         self.buffer.add(seen, action, reward, next_seen, terminated)  # s̃ₜ and s̃ₜ₊₁, as the agent saw them
+        self.true_obs[self.buffer.last_index] = self.true
         self.ep_return += reward
         self.succeeded |= bool(info.get("success", False))
         self.target_hit |= self.target_test(info)
-        self.obs = next_seen
+        self.obs, self.true = next_seen, info["true_obs"]
         warm = self.phase == "warm-up"
         if warm:
             self.warmup_steps += 1
@@ -315,8 +322,11 @@ class RobustTrainer:
             self._begin("adversary")
         return out
 
-    def _extra(self):
-        terms = [t for t in (self.term, self.regulariser, self.anchor) if t is not None]
+    def _extra(self, batch: dict[str, torch.Tensor]):
+        terms = [t for t in (self.term, self.regulariser) if t is not None]
+        if self.anchor is not None:
+            true_obs = batch["true_obs"] if self.config.anchor_on == "true" else None
+            terms.append(lambda obs, action: self.anchor(obs, action, true_obs))
         if not terms:
             return None
         if self.term is not None:
@@ -325,10 +335,11 @@ class RobustTrainer:
         return lambda obs, action: sum(t(obs, action) for t in terms)
 
     def _update(self, actor: bool) -> None:
-        batch = self.buffer.sample(self.config.sac.batch_size, self.rng, self.device)
+        idx = self.buffer.sample_indices(self.config.sac.batch_size, self.rng)
+        batch = self.buffer.take(idx, self.device) | {"true_obs": torch.as_tensor(self.true_obs[idx], device=self.device)}
         if isinstance(self.term, WorstCaseValue):
             self.metrics.update(self.term.update(batch, self.agent.actor))
-        self.metrics.update(self.agent.update(batch, actor=actor, actor_extra=self._extra() if actor else None))
+        self.metrics.update(self.agent.update(batch, actor=actor, actor_extra=self._extra(batch) if actor else None))
         self.counters["agent_updates"] += int(actor)
 
     # --- evaluation ---------------------------------------------------------------------------------
@@ -360,7 +371,8 @@ class RobustTrainer:
 
     def state_dict(self) -> dict:
         state = {"agent": self.agent.state_dict(), "optimizers": self.agent.optimizer_state(),
-                 "buffer": self.buffer.state_dict(), "rng": rng_state(self.rng),
+                 "buffer": self.buffer.state_dict(), "true_obs": self.true_obs[:len(self.buffer)],
+                 "rng": rng_state(self.rng),
                  "victim": self.victim.policy.state_dict()}
         if self.adversary is not None:
             state["adversary"] = self.adversary.state_dict()
@@ -374,6 +386,7 @@ class RobustTrainer:
         self.agent.load_state_dict(state["agent"])
         self.agent.load_optimizer_state(state["optimizers"])
         self.buffer.load_state_dict(state["buffer"])
+        self.true_obs[:len(self.buffer)] = state["true_obs"]
         self.victim.load_policy(state["victim"])
         if self.adversary is not None:
             self.adversary.load_state_dict(state["adversary"], meta.get("adversary_meta", {}) | {
