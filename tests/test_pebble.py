@@ -113,7 +113,7 @@ def test_a_resumed_learner_reuses_stored_labels_and_asks_nothing_twice(tmp_path)
     learner, env = make(tmp_path, cfg)
     drive(learner, env, 300)
     state = learner.state_dict()  # a checkpoint at step 300: one round done
-    drive(learner, env, 400)  # a second round is stored ...
+    drive(learner, env, 700)  # a second and a third round are stored ...
     meta = learner.checkpoint_meta()
     learner.store.close()  # ... then the process dies
 
@@ -121,9 +121,12 @@ def test_a_resumed_learner_reuses_stored_labels_and_asks_nothing_twice(tmp_path)
     resumed.load_state_dict(state)
     resumed.restore_meta(meta)
     assert resumed.step == 300 and resumed.asked == 30 and resumed.source == "run"
+    trained_on, train_round = [], resumed.ensemble.train_round
+    resumed.ensemble.train_round = lambda *a: trained_on.append(len(a[4])) or train_round(*a)
     drive(resumed, env2, 700)
-    assert resumed.asked == 70 and resumed.store.count("run") == 70  # the second round's labels were reused
+    assert resumed.asked == 70 and resumed.store.count("run") == 70  # the stored rounds were reused
     assert [r["round"] for r in resumed.store.rounds("run")] == [0, 1, 2]
+    assert trained_on == [60, 70]  # r̂ of round 1 learnt rounds 0 and 1, not round 2's labels ahead of time
 
 
 def test_an_oracle_learner_stores_the_true_reward_and_asks_nothing(tmp_path):

@@ -207,14 +207,15 @@ class PebbleLearner:
 
         If the store already holds this round (it finished before an interruption), its labels
         are used and nothing is stored twice; the round still draws its candidates and asks the
-        labeller, so a resumed run consumes random numbers exactly as an uninterrupted one.
+        labeller, so a resumed run consumes random numbers exactly as an uninterrupted one. Labels of
+        later rounds (a run resumed from before them) are not read until their round comes.
         """
         cfg = self.config
         candidates = self.history.sample_pairs(n * cfg.candidates_factor, cfg.segment_length, self.rng)
         strategy = cfg.first_strategy if self.round == 0 else cfg.strategy
         labelled = None
-        if strategy.startswith("kcenter") and self.store.count(self.source):
-            labelled = pair_features(self.store.read(self.source).pairs)
+        if strategy.startswith("kcenter") and self.store.count(self.source, before_round=self.round):
+            labelled = pair_features(self.store.read(self.source, before_round=self.round).pairs)
         chosen = candidates.select(select_queries(strategy, candidates, n, self.ensemble, self.rng, labelled))
         query = QueryRound(self.round, self.step, self.source, self.task, self.target, self.segment_return_scale())
         labels = self.labeller.label(chosen, self.rng, query)
@@ -226,7 +227,7 @@ class PebbleLearner:
         first = self.round == 0
         self.round += 1
         metrics = self.train_reward()
-        metrics.update({"labels": float(self.store.count(self.source)), "queries_asked": float(self.asked),
+        metrics.update({"labels": float(self.store.count(self.source, before_round=self.round)), "queries_asked": float(self.asked),
                         "round_labels": float(len(labels.y)), "round_ties": float(np.sum(labels.y == 0.5))})
         metrics.update(self.reward_agreement())
         if first:
@@ -253,8 +254,8 @@ class PebbleLearner:
             self.update()
 
     def train_reward(self) -> dict[str, float]:
-        """Train the ensemble on every label of this run, then relabel the whole replay buffer."""
-        labels = self.store.read(self.source)
+        """Train the ensemble on every label of this run's rounds so far, then relabel the whole replay buffer."""
+        labels = self.store.read(self.source, before_round=self.round)
         if len(labels) == 0:
             return {}
         p = labels.pairs

@@ -240,10 +240,14 @@ class LabelStore:
 
     # --- reading -------------------------------------------------------------------------------
 
-    def count(self, source: str | None = None) -> int:
+    def count(self, source: str | None = None, before_round: int | None = None) -> int:
+        """How many labels (of one ``source``; of its rounds before ``before_round``, as :meth:`read`)."""
         if source is None:
             return self.db.execute("SELECT COUNT(*) FROM labels").fetchone()[0]
-        return self.db.execute("SELECT COUNT(*) FROM labels WHERE source=?", (source,)).fetchone()[0]
+        if before_round is None:
+            return self.db.execute("SELECT COUNT(*) FROM labels WHERE source=?", (source,)).fetchone()[0]
+        return self.db.execute("SELECT COUNT(*) FROM labels WHERE source=? AND (round IS NULL OR round < ?)",
+                               (source, int(before_round))).fetchone()[0]
 
     def count_answered(self) -> int:
         """Labels given one at a time, as answers to published queries (a person's, or the teacher's after a timeout)."""
@@ -257,13 +261,18 @@ class LabelStore:
     def sources(self) -> list[tuple[str, int]]:
         return self.db.execute("SELECT source, COUNT(*) FROM labels GROUP BY source ORDER BY source").fetchall()
 
-    def read(self, source: str | None = None, ids: list[int] | None = None) -> LabelSet:
-        """Labels in id order, optionally only those of one ``source`` or with given ``ids``."""
+    def read(self, source: str | None = None, ids: list[int] | None = None, before_round: int | None = None
+             ) -> LabelSet:
+        """Labels in id order, optionally only those of one ``source``, with given ``ids``, or of rounds before
+        ``before_round`` (with the labels of no round, imported ones)."""
         query, args = "SELECT * FROM labels", []
         clauses = []
         if source is not None:
             clauses.append("source=?")
             args.append(source)
+        if before_round is not None:
+            clauses.append("(round IS NULL OR round < ?)")
+            args.append(int(before_round))
         if ids is not None:
             clauses.append(f"id IN ({','.join('?' * len(ids))})")
             args.extend(int(i) for i in ids)

@@ -125,15 +125,14 @@ class Anchor:
     ``critic`` (the agent's own), taken as a constant, as TD3+BC scales its behaviour term.
 
     ``obs`` is what the agent saw (s̃, where ã was drawn) and ``true_obs`` the unperturbed observation at which
-    μ₀ is taken (``obs`` itself if not given). Anchored at s̃, the agent would be held to the starting actor's
-    answer to the perturbation, which is what the attack exploits; anchored at s it is pulled to that actor's
-    answer to the true state (docs/robust.md#the-anchor has the measurement)."""
+    μ₀ is taken. Anchored at s̃ instead, the agent is held to the starting actor's answer to the perturbation,
+    which is what the attack exploits (benchmarks/table3.md#the-anchor-at-the-true-observation)."""
 
     def __init__(self, start: TanhGaussianActor, critic: TwinCritic, weight: float):
         self.start, self.critic, self.weight = start.requires_grad_(False), critic, weight
 
-    def __call__(self, obs: torch.Tensor, action: torch.Tensor, true_obs: torch.Tensor | None = None) -> torch.Tensor:
+    def __call__(self, obs: torch.Tensor, action: torch.Tensor, true_obs: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            reference = self.start(obs if true_obs is None else true_obs)
+            reference = self.start(true_obs)
             scale = torch.min(*self.critic(obs, action)).abs().mean()
         return self.weight * scale * ((action - reference) ** 2).sum(-1)

@@ -74,12 +74,10 @@ class RobustConfig:
     #: finetune: σ of the Gaussian noise on the starting actor's warm-up actions, so that the critic learns Q
     #: around the actor's actions and not only on them (the zoo's actors are near-deterministic)
     warmup_noise: float = 0.3
-    #: finetune: weight of ‖ã − μ₀(s)‖² in the actor's loss, μ₀ the starting actor, in units of the critic's
-    #: mean |Q| (TD3+BC's scale, 1/2.5); 0: off. Without it the first actor updates lose the task (docs/robust.md)
+    #: finetune: weight of ‖ã − μ₀(s)‖² in the actor's loss, μ₀ the starting actor at the true observation s
+    #: (ã drawn at the perturbed s̃), in units of the critic's mean |Q| (TD3+BC's scale, 1/2.5); 0: off.
+    #: Without it the first actor updates lose the task (docs/robust.md)
     anchor: float = 0.4
-    #: finetune: where μ₀ is taken in the anchor: at the true observation (the agent pulled to what μ₀ does
-    #: unperturbed) or at the perturbed one it saw (μ₀'s answer to the attack)
-    anchor_on: str = "true"
     #: finetune: the agent's entropy temperature, fixed (the zoo's actors sit far below SAC's target entropy,
     #: and a learnt temperature would widen them); 0: SAC's own, learnt from sac.init_temperature
     finetune_temperature: float = 0.001
@@ -104,8 +102,7 @@ class RobustConfig:
         if self.method not in METHODS:
             raise RatError(f"unknown robust-training method '{self.method}'; use one of: {', '.join(METHODS)}")
         choices = {"init": ("finetune", "scratch"), "adversary_reward": ("target", "neg-task"),
-                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear"),
-                   "anchor_on": ("true", "seen")}
+                   "wocar_critic": ("intention", "worst-case"), "wocar_schedule": ("constant", "linear")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise RatError(f"{name.replace('_', '-')} must be one of {', '.join(allowed)}, got '{getattr(self, name)}'")
@@ -325,8 +322,7 @@ class RobustTrainer:
     def _extra(self, batch: dict[str, torch.Tensor]):
         terms = [t for t in (self.term, self.regulariser) if t is not None]
         if self.anchor is not None:
-            true_obs = batch["true_obs"] if self.config.anchor_on == "true" else None
-            terms.append(lambda obs, action: self.anchor(obs, action, true_obs))
+            terms.append(lambda obs, action: self.anchor(obs, action, batch["true_obs"]))
         if not terms:
             return None
         if self.term is not None:
