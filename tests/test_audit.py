@@ -83,3 +83,29 @@ def test_an_agent_that_does_not_fit_its_task_ends_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "rat: error:" in err
     assert not (tmp_path / "a").exists()
+
+
+def test_the_foreign_victims_table_pools_seeds_and_judges_rat_against_random_and_the_probe():
+    from benchmark_scripts import load
+
+    bench = load("foreign_attacks")
+
+    def audit(rates, clean=0.0, n=30):
+        return {"rows": [{"target": "reach", "epsilon": 0.1, "attack": a, "status": "done", "episodes": n,
+                          "attack_success_rate": r, "clean_success_rate": clean} for a, r in rates.items()]
+                + [{"target": "reach", "epsilon": 0.05, "attack": "rat", "status": "done", "episodes": n,
+                    "attack_success_rate": 1.0, "clean_success_rate": clean}]}  # another ε: not pooled
+
+    steered = [audit({"random": 0.0, "probe": 0.6, "rat": 0.5}), audit({"random": 0.1, "probe": 0.7, "rat": 0.4})]
+    line = bench.summarise("v", {"algorithm": "sac"}, steered)
+    assert line["seeds"] == 2 and line["rat_success"] == pytest.approx(27 / 60) and line["probe_steers"]
+    assert line["rat_vs_random_p"] < 1e-4 and line["probe_minus_rat"] == pytest.approx(12 / 60)
+    assert line["goal_met"] is True
+    far = bench.summarise("v", {}, [audit({"random": 0.0, "probe": 0.9, "rat": 0.5})])
+    assert far["goal_met"] is False  # 40 points below the probe
+    unsteerable = bench.summarise("v", {}, [audit({"random": 0.0, "probe": 0.0, "rat": 0.0})])
+    assert unsteerable["probe_steers"] is False and unsteerable["goal_met"] is None
+    unfinished = bench.summarise("v", {}, [audit({"random": 0.0, "probe": 0.5})])
+    assert unfinished["complete"] is False
+    table = bench.table_markdown([line, far, unsteerable, unfinished])
+    assert "| met |" in table and "**not met**" in table and "probe cannot steer" in table and "not finished" in table

@@ -250,18 +250,21 @@ def test_robust_eval_of_an_unfinished_run_says_how_to_finish_it(tmp_path, capsys
 
 @pytest.mark.slow
 def test_a_rat_atla_agent_beats_the_undefended_victim_under_a_fixed_attack(tmp_path):
-    """The fixed attack: phase 0's RAT adversary, trained against the undefended victim and frozen there. The
-    robust agent trains against that adversary as it goes on learning, so it has never seen this copy
-    (benchmarks/robust_point.py, the point environment's recipe with the cpu preset's anchor)."""
+    """The fixed attack: a RAT attack trained against the undefended victim and frozen; the robust agent trains
+    against its own adversary and never sees it (benchmarks/robust_point.py: the point environment's recipe,
+    the cpu preset's anchor)."""
     from benchmark_scripts import load
     from scipy import stats
 
-    row = load("robust_point").one_seed(0, {}, tmp_path / "run")
-    assert row["agent_updates"] >= 3500 and row["adversary_phases"] == 11
-    robust, undefended, n = row["robust"], row["undefended"], row["episodes"]
+    bench = load("robust_point")
+    attack = bench.fixed_attack(0, tmp_path / "attack")
+    trainer = bench.robust_agent("rat-atla", 0, {}, tmp_path / "run")
+    assert trainer.counters["agent_updates"] >= 3500 and trainer.counters["adversary_phases"] == 11
+    robust, undefended = bench.attacked(trainer.current_agent(), attack), bench.attacked(point_sac_victim(), attack)
+    n = bench.EPISODES
     p = stats.ttest_ind_from_stats(robust["return"], robust["std"], n, undefended["return"], undefended["std"], n,
                                    equal_var=False, alternative="greater").pvalue
-    assert robust["return"] >= undefended["return"] + 1.0 and p < 0.01, f"{row}, p={p:.2g}"
+    assert robust["return"] >= undefended["return"] + 1.0 and p < 0.01, f"{robust}, {undefended}, p={p:.2g}"
 
 
 def test_a_checkpoint_of_an_unreleased_layout_is_refused_in_one_line(tmp_path):
