@@ -12,7 +12,7 @@ undefended controller and for the robust agent.
     python benchmarks/robust_point.py --seeds 0,1,2 --methods rat-atla,rat-wocar,atla,pa-atla
     python benchmarks/robust_point.py --seeds 0,1,2 --methods rat-wocar --set wocar_critic=worst-case
 
-Results: benchmarks/table3.md#the-point-environment.
+Results: benchmarks/table3.md#the-point-environment-table-3-in-miniature.
 """
 
 from __future__ import annotations
