@@ -76,7 +76,7 @@ def test_zoo_names_pick_the_sac_victim_first_and_name_each_kind(tmp_path, monkey
 def test_the_shipped_sac_victims_are_sacs_own_actors_and_what_a_bare_zoo_name_means(task):
     from rat.victims.zoo import zoo_path, zoo_victims
 
-    assert zoo_victims(ZOO_DIR)[task] == ["sac", "bc"]
+    assert zoo_victims(ZOO_DIR)[task][:2] == ["sac", "bc"]
     assert zoo_path(task, ZOO_DIR) == ZOO_DIR / f"{task}@sac"
     meta = load_victim(f"zoo:{task}@sac").meta
     assert meta["task"] == task and meta["method"] == "sac-demo"
@@ -85,6 +85,19 @@ def test_the_shipped_sac_victims_are_sacs_own_actors_and_what_a_bare_zoo_name_me
     assert meta["architecture"]["hidden"] == 256 and meta["architecture"]["layers"] == 3
     timings = json.loads((ZOO_DIR / "timings.json").read_text())
     assert timings[f"{task}@sac"]["clean_success"] >= 0.95 and timings[f"{task}@sac"]["episodes"] == 50
+
+
+def test_the_shipped_robust_agents_say_how_they_were_made_and_load_as_victims():
+    from rat.victims.zoo import zoo_victims
+
+    robust = {(t, m) for t, ms in zoo_victims(ZOO_DIR).items() for m in ms if m in ("rat-atla", "rat-wocar", "atla",
+                                                                                    "pa-atla")}
+    assert ("faucet-close-v3", "rat-atla") in robust
+    for task, method in robust:
+        meta = load_victim(f"zoo:{task}@{method}").meta
+        assert meta["task"] == task and meta["method"] == f"robust-{method}"
+        assert meta["robust"]["started_from"] == f"zoo:{task}@sac" and meta["robust"]["epsilon"] == 0.1
+        assert meta["config"]["robust"]["method"] == method and meta["config"]["robust"]["agent_steps"] == 40_000
 
 
 def shipped_dts() -> dict[str, str]:

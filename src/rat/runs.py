@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import fcntl
+import functools
 import json
 import os
 import random
@@ -34,8 +35,10 @@ import torch
 from rat.errors import RatError, require
 
 
+@functools.cache
 def git_commit() -> str:
-    """The commit of the code that runs, or ``"unknown"`` outside a git checkout."""
+    """The commit of the code that runs, or ``"unknown"`` outside a git checkout: read once, when a process first
+    asks (a :class:`Run` asks as it opens), so a long run reports the code it started with, not a later checkout's."""
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
                              cwd=Path(__file__).resolve().parent)
@@ -265,6 +268,7 @@ class Run:
     """
 
     def __init__(self, directory: str | Path, config: Any, tensorboard: bool = False):
+        git_commit()  # the code this process runs, read before the checkout can move on
         self.dir = check_run_dir(directory)  # writable, ours or empty: checked without writing
         self.dir.mkdir(parents=True, exist_ok=True)
         claim_run_dir(self.dir)
