@@ -37,18 +37,18 @@ def audit_command(victim_file: Path, task: str, seed: int, out: Path, budget_min
 def pooled(audits: list[dict]) -> dict[str, dict]:
     """Per attack (and the clean agent), the target's hits and episodes summed over ``audits`` at (TARGET, EPSILON)."""
     counts: dict[str, dict] = {}
+
+    def add(name: str, rate: float, n: int) -> None:
+        c = counts.setdefault(name, {"hits": 0, "episodes": 0, "seeds": 0})
+        c["hits"], c["episodes"], c["seeds"] = c["hits"] + round(rate * n), c["episodes"] + n, c["seeds"] + 1
+
     for audit in audits:
         for row in audit["rows"]:
             if row["status"] != "done" or row["target"] != TARGET or abs(row["epsilon"] - EPSILON) > 1e-12:
                 continue
-            n = int(row["episodes"])
-            for name, rate in ((row["attack"], row["attack_success_rate"]), ("clean", row["clean_success_rate"])):
-                if name == "clean" and row["attack"] != "random":
-                    continue  # the clean agent once per audit: beside the random attack's episodes
-                c = counts.setdefault(name, {"hits": 0, "episodes": 0, "seeds": 0})
-                c["hits"] += round(rate * n)
-                c["episodes"] += n
-                c["seeds"] += 1
+            add(row["attack"], row["attack_success_rate"], int(row["episodes"]))
+            if row["attack"] == "random":  # the clean agent once per audit: beside the random attack's episodes
+                add("clean", row["clean_success_rate"], int(row["episodes"]))
     return counts
 
 

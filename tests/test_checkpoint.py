@@ -151,3 +151,19 @@ def test_a_resumed_run_counts_the_training_time_of_every_session(tmp_path, monke
     assert second.resume() and second.trainer.step == 5
     assert second.run() == 15.0  # this session: units 6-10 at 3 s
     assert second.total_seconds == 25.0  # and the 10 s that made the checkpoint it resumed (units 6-7's lost 4 s are not)
+
+
+def test_the_commit_a_run_records_is_read_once_so_a_checkout_moved_later_does_not_change_it(monkeypatch):
+    import subprocess
+
+    from rat import runs
+
+    calls = []
+    real = subprocess.run
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: calls.append(a) or real(*a, **k))
+    runs.git_commit.cache_clear()
+    try:
+        first = runs.git_commit()
+        assert runs.git_commit() == first and len(calls) == 1
+    finally:
+        runs.git_commit.cache_clear()

@@ -105,6 +105,22 @@ CREATE UNIQUE INDEX IF NOT EXISTS labels_by_query ON labels (query_id);
 """
 
 
+def _where(source: str | None, before_round: int | None, ids: list[int] | None = None) -> tuple[str, list]:
+    """The WHERE clause (and its arguments) choosing labels of one ``source``, of rounds before ``before_round``
+    (with the labels of no round, imported ones), with given ``ids``; empty when none is given."""
+    clauses, args = [], []
+    if source is not None:
+        clauses.append("source=?")
+        args.append(source)
+    if before_round is not None:
+        clauses.append("(round IS NULL OR round < ?)")
+        args.append(int(before_round))
+    if ids is not None:
+        clauses.append(f"id IN ({','.join('?' * len(ids))})")
+        args.extend(int(i) for i in ids)
+    return (" WHERE " + " AND ".join(clauses) if clauses else ""), args
+
+
 class AnswerError(RatError):
     """An answer the store refuses; ``status`` is the HTTP status that says why (404, 409, 422)."""
 
@@ -241,13 +257,9 @@ class LabelStore:
     # --- reading -------------------------------------------------------------------------------
 
     def count(self, source: str | None = None, before_round: int | None = None) -> int:
-        """How many labels (of one ``source``; of its rounds before ``before_round``, as :meth:`read`)."""
-        if source is None:
-            return self.db.execute("SELECT COUNT(*) FROM labels").fetchone()[0]
-        if before_round is None:
-            return self.db.execute("SELECT COUNT(*) FROM labels WHERE source=?", (source,)).fetchone()[0]
-        return self.db.execute("SELECT COUNT(*) FROM labels WHERE source=? AND (round IS NULL OR round < ?)",
-                               (source, int(before_round))).fetchone()[0]
+        """How many labels (of one ``source``; of rounds before ``before_round``, as :meth:`read`)."""
+        where, args = _where(source, before_round)
+        return self.db.execute("SELECT COUNT(*) FROM labels" + where, args).fetchone()[0]
 
     def count_answered(self) -> int:
         """Labels given one at a time, as answers to published queries (a person's, or the teacher's after a timeout)."""
@@ -265,20 +277,8 @@ class LabelStore:
              ) -> LabelSet:
         """Labels in id order, optionally only those of one ``source``, with given ``ids``, or of rounds before
         ``before_round`` (with the labels of no round, imported ones)."""
-        query, args = "SELECT * FROM labels", []
-        clauses = []
-        if source is not None:
-            clauses.append("source=?")
-            args.append(source)
-        if before_round is not None:
-            clauses.append("(round IS NULL OR round < ?)")
-            args.append(int(before_round))
-        if ids is not None:
-            clauses.append(f"id IN ({','.join('?' * len(ids))})")
-            args.extend(int(i) for i in ids)
-        if clauses:
-            query += " WHERE " + " AND ".join(clauses)
-        rows = self._rows(query + " ORDER BY id", args)
+        where, args = _where(source, before_round, ids)
+        rows = self._rows("SELECT * FROM labels" + where + " ORDER BY id", args)
         if not rows:
             return LabelSet(SegmentPairs(*(np.zeros((0,)) for _ in range(6))), np.zeros(0), [])
         pairs = _segments(rows)
