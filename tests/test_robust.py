@@ -71,6 +71,20 @@ def test_the_phases_alternate_and_each_moves_only_its_own_weights(tmp_path):
     assert moved[("adversary", "victim")] == {False} and moved[("adversary", "adversary")] == {True}
 
 
+def test_the_sac_control_trains_the_agent_alone_on_clean_observations(tmp_path):
+    trainer = trainer_for(config("sac"), tmp_path / "run")
+    assert trainer.adversary is None
+    phases, actor = [trainer.phase], flat(trainer.agent.actor)
+    while not trainer.finished:
+        trainer.advance()
+        phases += [trainer.phase] * (trainer.phase != phases[-1])
+    assert phases == ["warm-up", "agent", "done"]
+    assert trainer.counters["adversary_phases"] == 0 and trainer.counters["agent_updates"] > 300
+    assert not torch.equal(flat(trainer.agent.actor), actor)
+    n = len(trainer.buffer)
+    np.testing.assert_array_equal(trainer.buffer.obs[:n], trainer.true_obs[:n])  # nothing perturbed what it saw
+
+
 def test_the_agents_buffer_holds_the_perturbed_observations_it_was_shown(tmp_path):
     trainer = trainer_for(config("atla"), tmp_path / "run")
     while trainer.phase != "agent":

@@ -54,6 +54,7 @@ METHODS = {
                  "worst-attack Q of the task reward (WocaR's)",
     "atla": "SA-RL's PPO adversary alternating with the agent (ATLA, with a SAC agent)",
     "pa-atla": "PA-AD's PPO director and gradient actor alternating with the agent (PA-ATLA, with a SAC agent)",
+    "sac": "no defence: SAC on clean observations alone (the control: what the same training does without one)",
 }
 ADVERSARY_OF = {"rat-atla": "rat", "rat-wocar": "rat", "atla": "sa-rl", "pa-atla": "pa-ad"}  #: the attack each trains against
 PHASES = ("warm-up", "adversary", "agent", "done")
@@ -125,12 +126,12 @@ class RobustConfig:
 
     @property
     def alternates(self) -> bool:
-        """Whether adversary phases follow the agent's (every method but RAT-WocaR)."""
-        return self.method != "rat-wocar"
+        """Whether adversary phases follow the agent's (every method with an adversary but RAT-WocaR)."""
+        return self.method in ADVERSARY_OF and self.method != "rat-wocar"
 
     @property
     def needs_adversary(self) -> bool:
-        return self.method != "rat-wocar" or self.wocar_critic == "intention"
+        return self.method in ADVERSARY_OF and (self.method != "rat-wocar" or self.wocar_critic == "intention")
 
     @property
     def adversary_method(self) -> str | None:
