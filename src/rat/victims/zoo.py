@@ -60,12 +60,12 @@ def _kinds(directory: Path) -> dict[str, set[str]]:
 
 
 def zoo_victims(directory: Path | None = None) -> dict[str, list[str]]:
-    """``{task: [methods]}`` of every zoo victim (in ``directory``, or in any zoo), SAC first."""
+    """``{task: [methods]}`` of every zoo victim (in ``directory``, or in any zoo): SAC, the clone, then the rest."""
     merged: dict[str, set[str]] = {}
     for d in [directory] if directory is not None else zoo_dirs():
         for task, methods in _kinds(d).items():
             merged.setdefault(task, set()).update(methods)
-    return {t: sorted(m, key=lambda x: (x != "sac", x)) for t, m in sorted(merged.items())}
+    return {t: sorted(m, key=lambda x: (x != "sac", x != "bc", x)) for t, m in sorted(merged.items())}
 
 
 DT_PREFIX = "dt/"
