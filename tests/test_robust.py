@@ -71,8 +71,8 @@ def test_the_phases_alternate_and_each_moves_only_its_own_weights(tmp_path):
     assert moved[("adversary", "victim")] == {False} and moved[("adversary", "adversary")] == {True}
 
 
-def test_the_sac_control_trains_the_agent_alone_on_clean_observations(tmp_path):
-    trainer = trainer_for(config("sac"), tmp_path / "run")
+def test_the_control_trains_the_agent_alone_on_clean_observations(tmp_path):
+    trainer = trainer_for(config("none"), tmp_path / "run")
     assert trainer.adversary is None
     phases, actor = [trainer.phase], flat(trainer.agent.actor)
     while not trainer.finished:

@@ -659,8 +659,8 @@ ROBUST = "rat.robust.trainer:RobustConfig"
 
 
 @robust.command("train")
-@click.option("--method", type=click.Choice(["rat-atla", "rat-wocar", "atla", "pa-atla", "sac"]), default="rat-atla",
-              show_default=True, help="the defence (docs/robust.md); sac: none, the control")
+@click.option("--method", type=click.Choice(["rat-atla", "rat-wocar", "atla", "pa-atla", "none"]), default="rat-atla",
+              show_default=True, help="the defence (docs/robust.md); none: the control")
 @click.option("--victim", "victim_spec", default="zoo:faucet-close-v3@sac", show_default=True,
               help="the agent to start from: a SAC victim (zoo:<task>@sac, a victim checkpoint)")
 @click.option("--task", default=None, help="the victim's own task, for a victim that does not record one")
@@ -823,7 +823,7 @@ def bench_report(folder) -> None:
 @click.option("--tasks", default="faucet-close-v3", show_default=True, callback=_csv(str),
               help="tasks with a zoo SAC victim (zoo:<task>@sac), comma-separated; the paper's: door-lock-v3, "
                    "door-unlock-v3, faucet-open-v3, faucet-close-v3")
-@click.option("--rows", default="undefended,sac,rat-atla,rat-wocar,atla,pa-atla", show_default=True, callback=_csv(str),
+@click.option("--rows", default="undefended,none,rat-atla,rat-wocar,atla,pa-atla", show_default=True, callback=_csv(str),
               help="the defences (each a robust agent trained from the zoo victim), and the victim itself")
 @click.option("--attacks", default="rat,pa-ad,sa-rl,random", show_default=True, callback=_csv(str),
               help="each trained afresh against every row's agent")

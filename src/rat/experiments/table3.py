@@ -1,7 +1,7 @@
 """The paper's table 3, and beyond it: robust agents × attacks, each attack trained afresh against each agent.
 
 A row is one defence of one task and seed (``rat-atla``, ``rat-wocar``, ``atla``, ``pa-atla``), ``undefended``:
-the zoo's SAC victim the defences start from, or ``sac``: that victim trained on as the defences are, with no
+the zoo's SAC victim the defences start from, or ``none``: that victim trained on as the defences are, with no
 defence (the control, which tells what a defence does beyond the fine-tuning every row gets). Each row's agent is trained by :func:`~rat.robust.run.train_robust_from`
 in ``<out>/<task>/<row>-seed<seed>`` (skipped once finished, resumed if interrupted), then every attack is trained
 against it in that directory's ``eval/<attack>`` (:func:`~rat.robust.run.attack_agent`): two waves of cells on
@@ -23,9 +23,9 @@ from rat.attacks.threat import ThreatModel
 from rat.errors import RatError
 from rat.experiments.paper import PAPER_TABLE3
 
-ROWS = ("undefended", "sac", "rat-atla", "rat-wocar", "atla", "pa-atla")
+ROWS = ("undefended", "none", "rat-atla", "rat-wocar", "atla", "pa-atla")
 ATTACKS = ("rat", "pa-ad", "sa-rl", "random")
-ROW_NAMES = {"undefended": "undefended (zoo SAC)", "sac": "fine-tuned, no defence", "rat-atla": "RAT-ATLA", "rat-wocar": "RAT-WocaR",
+ROW_NAMES = {"undefended": "undefended (zoo SAC)", "none": "fine-tuned, no defence", "rat-atla": "RAT-ATLA", "rat-wocar": "RAT-WocaR",
              "atla": "ATLA (SAC agent)", "pa-atla": "PA-ATLA (SAC agent)"}
 
 

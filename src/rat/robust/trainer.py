@@ -54,7 +54,7 @@ METHODS = {
                  "worst-attack Q of the task reward (WocaR's)",
     "atla": "SA-RL's PPO adversary alternating with the agent (ATLA, with a SAC agent)",
     "pa-atla": "PA-AD's PPO director and gradient actor alternating with the agent (PA-ATLA, with a SAC agent)",
-    "sac": "no defence: SAC on clean observations alone (the control: what the same training does without one)",
+    "none": "no defence: SAC on clean observations alone (the control: what the same training does without one)",
 }
 ADVERSARY_OF = {"rat-atla": "rat", "rat-wocar": "rat", "atla": "sa-rl", "pa-atla": "pa-ad"}  #: the attack each trains against
 PHASES = ("warm-up", "adversary", "agent", "done")
