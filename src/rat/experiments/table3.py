@@ -2,12 +2,12 @@
 
 A row is one defence of one task and seed (``rat-atla``, ``rat-wocar``, ``atla``, ``pa-atla``), ``undefended``:
 the zoo's SAC victim the defences start from, or ``none``: that victim trained on as the defences are, with no
-defence (the control, which tells what a defence does beyond the fine-tuning every row gets). Each row's agent is trained by :func:`~rat.robust.run.train_robust_from`
-in ``<out>/<task>/<row>-seed<seed>`` (skipped once finished, resumed if interrupted), then every attack is trained
-against it in that directory's ``eval/<attack>`` (:func:`~rat.robust.run.attack_agent`): two waves of cells on
-:mod:`rat.experiments.grid`, in local processes or as Ray tasks. The table gives, per
-attack, the task return (table 3's number) *and* the target's success rate, and per row the clean return, the price
-a defence pays when nobody attacks.
+defence (the control, which tells what a defence does beyond the fine-tuning every row gets). Each row's agent is
+trained by :func:`~rat.robust.run.train_robust_from` in ``<out>/<task>/<row>-seed<seed>`` (skipped once
+finished, resumed if interrupted), then every attack is trained against it in that directory's ``eval/<attack>``
+(:func:`~rat.robust.run.attack_agent`): two waves of cells on :mod:`rat.experiments.grid`, in local processes or as
+Ray tasks. The table gives, per attack, the task return (table 3's number) *and* the target's success rate, and per
+row the clean return, the price a defence pays when nobody attacks.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from rat.experiments.paper import PAPER_TABLE3
 
 ROWS = ("undefended", "none", "rat-atla", "rat-wocar", "atla", "pa-atla")
 ATTACKS = ("rat", "pa-ad", "sa-rl", "random")
-ROW_NAMES = {"undefended": "undefended (zoo SAC)", "none": "fine-tuned, no defence", "rat-atla": "RAT-ATLA", "rat-wocar": "RAT-WocaR",
-             "atla": "ATLA (SAC agent)", "pa-atla": "PA-ATLA (SAC agent)"}
+ROW_NAMES = {"undefended": "undefended (zoo SAC)", "none": "fine-tuned, no defence", "rat-atla": "RAT-ATLA",
+             "rat-wocar": "RAT-WocaR", "atla": "ATLA (SAC agent)", "pa-atla": "PA-ATLA (SAC agent)"}
 
 
 def row_directory(out: str | Path, task: str, row: str, seed: int) -> Path:

@@ -183,8 +183,8 @@ def train_robust_from(config: RobustConfig, victim_spec: str, target: str, out: 
     adversary_config = adversary_settings(config, preset, target, budget)
     if adversary_set:
         if adversary_config is None:
-            raise RatError(f"{config.method}" + " with wocar-critic worst-case" * (config.method == "rat-wocar")
-                           + " trains no adversary; drop --adversary-set")
+            which = "rat-wocar with wocar-critic worst-case" if config.method == "rat-wocar" else config.method
+            raise RatError(f"{which} trains no adversary; drop --adversary-set")
         adversary_config = with_values(adversary_config, dict(parse_assignment(type(adversary_config), a)
                                                               for a in adversary_set))
     return train_robust(config, victim, behaviour, lambda s: make_task(task, seed=s), threat, out, adversary_config,
