@@ -72,3 +72,31 @@ def test_bench_table3_attacks_the_undefended_victim_and_keeps_what_it_measured(t
     assert json.loads((cell / "row.json").read_text())["attacks"]["random"]["return"] == -1.0
     assert main(["bench", "table3", "--rows", "nobody", "--out", str(tmp_path)]) == 2
     assert "unknown table-3 rows nobody" in capsys.readouterr().err
+
+
+def test_a_row_names_its_method_and_the_settings_that_differ_from_the_methods_defaults():
+    from rat.experiments.table3 import ROW_SETTINGS, ROWS, row_config
+
+    worst = row_config("rat-wocar-worst", "cpu", 3)
+    assert (worst.method, worst.wocar_critic, worst.seed) == ("rat-wocar", "worst-case", 3)
+    assert not worst.needs_adversary  # WocaR's estimate needs no attacker
+    released = row_config("rat-wocar", "cpu", 3)
+    assert (released.method, released.wocar_critic) == ("rat-wocar", "intention")
+    assert set(ROW_SETTINGS) < set(ROWS)
+
+
+def test_the_cli_runs_every_row_by_default():
+    """The CLI writes its default out by hand (it imports nothing heavy); it must name every row."""
+    from rat.cli import cli
+    from rat.experiments.table3 import ROWS
+
+    command = cli.commands["bench"].commands["table3"]
+    assert next(p.default for p in command.params if p.name == "rows") == ",".join(ROWS)
+
+
+def test_the_cli_offers_every_robust_method():
+    from rat.cli import cli
+    from rat.robust.trainer import METHODS
+
+    command = cli.commands["robust"].commands["train"]
+    assert set(next(p.type.choices for p in command.params if p.name == "method")) == set(METHODS)

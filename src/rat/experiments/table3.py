@@ -1,6 +1,7 @@
 """The paper's table 3, and beyond it: robust agents × attacks, each attack trained afresh against each agent.
 
-A row is one defence of one task and seed (``rat-atla``, ``rat-wocar``, ``atla``, ``pa-atla``), ``undefended``:
+A row is one defence of one task and seed (``rat-atla``, ``rat-wocar``, ``atla``, ``pa-atla``, and
+``rat-wocar-worst``: RAT-WocaR with WocaR's worst-case estimate in place of the release's term), ``undefended``:
 the zoo's SAC victim the defences start from, or ``none``: that victim trained on as the defences are, with no
 defence (the control, which tells what a defence does beyond the fine-tuning every row gets). Each row's agent is
 trained by :func:`~rat.robust.run.train_robust_from` in ``<out>/<task>/<row>-seed<seed>`` (skipped once
@@ -23,10 +24,21 @@ from rat.attacks.threat import ThreatModel
 from rat.errors import RatError
 from rat.experiments.paper import PAPER_TABLE3
 
-ROWS = ("undefended", "none", "rat-atla", "rat-wocar", "atla", "pa-atla")
+ROWS = ("undefended", "none", "rat-atla", "rat-wocar", "rat-wocar-worst", "atla", "pa-atla")
 ATTACKS = ("rat", "pa-ad", "sa-rl", "random")
 ROW_NAMES = {"undefended": "undefended (zoo SAC)", "none": "fine-tuned, no defence", "rat-atla": "RAT-ATLA",
-             "rat-wocar": "RAT-WocaR", "atla": "ATLA (SAC agent)", "pa-atla": "PA-ATLA (SAC agent)"}
+             "rat-wocar": "RAT-WocaR", "rat-wocar-worst": "RAT-WocaR (worst-case Q)", "atla": "ATLA (SAC agent)",
+             "pa-atla": "PA-ATLA (SAC agent)"}
+#: A row that is a method under other settings than its defaults; every other row is its method.
+ROW_SETTINGS = {"rat-wocar-worst": ("rat-wocar", {"wocar_critic": "worst-case"})}
+
+
+def row_config(row: str, preset: str, seed: int):
+    """The :class:`~rat.robust.trainer.RobustConfig` a row's agent is trained with."""
+    from rat.robust.trainer import robust_preset
+
+    method, settings = ROW_SETTINGS.get(row, (row, {}))
+    return robust_preset(preset, method=method, seed=seed, **settings)
 
 
 def row_directory(out: str | Path, task: str, row: str, seed: int) -> Path:
@@ -71,10 +83,9 @@ def train_agent(agent: Agent, out: str, preset: str, target: str, epsilon: float
     import torch
 
     from rat.robust.run import train_robust_from
-    from rat.robust.trainer import robust_preset
 
     torch.set_num_threads(1)  # one core per cell; cells run side by side
-    report = train_robust_from(robust_preset(preset, method=agent.row, seed=agent.seed), f"zoo:{agent.task}@sac",
+    report = train_robust_from(row_config(agent.row, preset, agent.seed), f"zoo:{agent.task}@sac",
                                target, agent.directory(out), preset, threat=ThreatModel(epsilon, norm),
                                progress=progress)
     return {"cell": agent.key, "train_minutes": report["train_minutes"]}
