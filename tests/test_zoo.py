@@ -49,6 +49,32 @@ def test_zoo_victims_are_looked_up_in_the_users_zoo_first_and_regenerated_there(
     assert user_zoo_dir() == tmp_path / "data" / "rat" / "zoo"
 
 
+def test_a_trained_victim_is_shipped_into_a_zoo_after_its_clean_evaluation(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from rat.cli import main
+    from rat.errors import RatError
+    from rat.victims.zoo import ship_victim
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for suffix in (".json", ".safetensors"):
+        shutil.copy(ZOO_DIR / f"window-open-v3{suffix}", run / f"victim{suffix}")
+    monkeypatch.setenv("RAT_ZOO", str(tmp_path / "mine"))
+    assert main(["victim", "ship", str(run), "window-open-v3@mine", "--episodes", "3", "--note", "a copy"]) == 0
+    assert "zoo:window-open-v3@mine" in capsys.readouterr().out
+    assert load_victim("zoo:window-open-v3@mine").meta["method"] == "bc"
+    entry = json.loads((tmp_path / "mine" / "timings.json").read_text())["window-open-v3@mine"]
+    assert entry["episodes"] == 3 and entry["clean_success"] >= 0.95 and entry["note"] == "a copy"
+    assert main(["victim", "ship", str(run), "door-lock-v3@mine", "--episodes", "3"]) == 2
+    assert "holds a victim of window-open-v3, not of door-lock-v3" in capsys.readouterr().err
+    assert main(["victim", "ship", str(run), "window-open-v3", "--episodes", "3"]) == 2
+    assert "must read <task>@<kind>" in capsys.readouterr().err
+    with pytest.raises(RatError, match="below 101%"):
+        ship_victim(run, "window-open-v3@strict", tmp_path / "mine", episodes=2, min_success=1.01)
+    assert not (tmp_path / "mine" / "window-open-v3@strict.json").exists()
+
+
 def test_zoo_names_pick_the_sac_victim_first_and_name_each_kind(tmp_path, monkeypatch, capsys):
     import shutil
 

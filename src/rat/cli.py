@@ -358,6 +358,27 @@ def victim_zoo(ctx, tasks, jobs, dest, work_dir, **_) -> None:
     regenerate_zoo(config, list(tasks) or None, work_dir, dest, jobs, on_done=report)
 
 
+@victim.command("ship")
+@click.argument("source", type=click.Path(exists=True, path_type=Path))
+@click.argument("name")
+@click.option("--dest", type=click.Path(path_type=Path), default=None,
+              help="zoo folder [your zoo: $RAT_ZOO or ~/.local/share/rat/zoo, searched before the shipped one]")
+@click.option("--episodes", type=int, default=50, show_default=True, help="clean evaluation episodes")
+@click.option("--note", default=None, help="how it was made, for timings.json")
+def victim_ship(source, name, dest, episodes, note) -> None:
+    """Put a trained victim (SOURCE: a run directory or a victim checkpoint) into a zoo as zoo:NAME (<task>@<kind>),
+    after a clean evaluation that must reach 95% success."""
+    from rat.runs import check_writable_dir
+    from rat.victims.zoo import ship_victim, user_zoo_dir
+
+    if episodes <= 0:
+        raise RatError(f"--episodes must be positive, got {episodes}")
+    dest = check_writable_dir(dest or user_zoo_dir(), "--dest")
+    row = ship_victim(source, name, dest, episodes, note=note)
+    click.echo(f"zoo:{name} in {dest}: clean success {row['clean_success']:.0%} over {row['episodes']} episodes, "
+               f"return {row['mean_return']:.0f}")
+
+
 # --- intention policies and labels -------------------------------------------------------------
 
 

@@ -301,6 +301,13 @@ class SACVictimTrainer:
 # --- the one entry point -------------------------------------------------------------------------
 
 
+def clean_evaluation(victim, task: str, seed: int, episodes: int, progress: bool = False) -> EvalResult:
+    """A victim's clean evaluation as the zoo reports it: ``episodes`` episodes on environment instances that
+    training with ``seed`` never saw, counted as success at any step."""
+    env = make_task(task, seed=seed + seeds.FRESH_ENV)
+    return evaluate(numpy_policy(victim), env, episodes, seed=seeds.VICTIM_FINAL + seed, progress=progress)
+
+
 def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, tensorboard: bool = False
                  ) -> tuple[Path, EvalResult]:
     """Make a victim with ``config`` in run directory ``out`` (resuming if it was interrupted).
@@ -322,9 +329,7 @@ def train_victim(config: VictimConfig, out: str | Path, progress: bool = True, t
     actor = trainer.actor.cpu()
 
     victim = ModuleVictim(actor, env.observation_space, env.action_space, name=f"{config.task}:{config.method}")
-    eval_env = make_task(config.task, seed=config.seed + seeds.FRESH_ENV)  # episodes never seen in training
-    result = evaluate(numpy_policy(victim), eval_env, config.eval_episodes, seed=seeds.VICTIM_FINAL + config.seed,
-                      progress=progress)
+    result = clean_evaluation(victim, config.task, config.seed, config.eval_episodes, progress)
     run.logger.log(trainer.step, {"final_success_rate": result.success_rate, "final_return": result.mean_return})
     meta = {
         "task": config.task,

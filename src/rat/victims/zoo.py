@@ -138,10 +138,52 @@ def _make_one(args: tuple) -> dict:
     name = config.task if config.method == "bc" else f"{config.task}@{config.method.split('-')[0]}"
     for suffix in (".safetensors", ".json"):
         shutil.copy(path.with_suffix(suffix), Path(dest) / f"{name}{suffix}")
-    return {"task": config.task, "method": config.method, "minutes": round(minutes, 2),
-            "clean_success": result.success_rate, "episodes": result.episodes,
-            "success_ci": [round(x, 3) for x in result.success_ci], "mean_return": round(result.mean_return, 1),
-            "success_at_last_step": result.success_at_last_step}
+    return timing_row(config.task, config.method, minutes, result)
+
+
+def timing_row(task: str, method: str, minutes: float, result) -> dict:
+    """A victim's entry in ``timings.json``: what it took to make and its clean evaluation."""
+    return {"task": task, "method": method, "minutes": round(minutes, 2), "clean_success": result.success_rate,
+            "episodes": result.episodes, "success_ci": [round(x, 3) for x in result.success_ci],
+            "mean_return": round(result.mean_return, 1), "success_at_last_step": result.success_at_last_step}
+
+
+def record_timings(dest: Path, rows: dict[str, dict]) -> None:
+    """Add ``rows`` (by zoo name) to ``dest/timings.json``, keeping the others."""
+    path = dest / "timings.json"
+    old = json.loads(path.read_text()) if path.exists() else {}
+    path.write_text(json.dumps(dict(sorted((old | rows).items())), indent=1))
+
+
+def ship_victim(source: str | Path, name: str, dest: str | Path | None = None, episodes: int = 50,
+                seed: int = 0, min_success: float = 0.95, note: str | None = None) -> dict:
+    """Put a trained victim (a run directory holding ``victim.{safetensors,json}``, or that file) into a zoo as
+    ``zoo:<name>``, after the zoo's clean evaluation (:func:`~rat.victims.training.clean_evaluation`) of
+    ``episodes`` episodes; refuses one below ``min_success``. Returns its ``timings.json`` entry."""
+    from rat.victims.training import clean_evaluation
+
+    source = Path(source)
+    stem = source / "victim" if source.is_dir() else source.with_suffix("")
+    if not stem.with_suffix(".json").exists():
+        raise RatError(f"no victim at {source}: give a run directory with victim.json or a victim checkpoint")
+    task, _, kind = name.partition("@")
+    if not kind or "/" in name:
+        raise RatError(f"zoo name '{name}' must read <task>@<kind>, e.g. door-lock-v3@sac")
+    victim = load_rat_victim(stem.with_suffix(".safetensors"))
+    if victim.meta.get("task") != task:
+        raise RatError(f"{source} holds a victim of {victim.meta.get('task')}, not of {task}; name it after its task")
+    result = clean_evaluation(victim, task, seed, episodes)
+    if result.success_rate < min_success:
+        raise RatError(f"{source}: clean success {result.success_rate:.0%} over {episodes} episodes is below "
+                       f"{min_success:.0%}; train it further before shipping it")
+    dest = Path(dest) if dest is not None else user_zoo_dir()
+    dest.mkdir(parents=True, exist_ok=True)
+    for suffix in (".safetensors", ".json"):
+        shutil.copy(stem.with_suffix(suffix), dest / f"{name}{suffix}")
+    row = timing_row(task, victim.meta.get("method", "unknown"), victim.meta.get("train_seconds", 0.0) / 60, result)
+    row |= {"note": note} if note else {}
+    record_timings(dest, {name: row})
+    return row
 
 
 def regenerate_zoo(config, tasks: list[str] | None = None, work_dir: str | Path = "runs/zoo",
@@ -161,10 +203,7 @@ def regenerate_zoo(config, tasks: list[str] | None = None, work_dir: str | Path 
             rows.append(row)
             if on_done is not None:
                 on_done(row)
-    timings_path = dest / "timings.json"
-    old = json.loads(timings_path.read_text()) if timings_path.exists() else {}
-    old.update({r["task"]: r for r in rows})
-    timings_path.write_text(json.dumps(dict(sorted(old.items())), indent=1))
+    record_timings(dest, {r["task"]: r for r in rows})
     weak = [f"{r['task']} ({r['clean_success']:.0%})" for r in rows if r["clean_success"] < min_success]
     if weak:
         raise RatError(f"victims below {min_success:.0%} clean success: {', '.join(weak)}; "
