@@ -100,3 +100,15 @@ def test_the_cli_offers_every_robust_method():
 
     command = cli.commands["robust"].commands["train"]
     assert set(next(p.type.choices for p in command.params if p.name == "method")) == set(METHODS)
+
+
+def test_the_rows_start_from_the_tasks_sac_victim_from_demonstrations_first_else_the_fine_tuned_clone():
+    from rat.errors import RatError
+    from rat.victims.zoo import sac_victim, zoo_victims
+
+    assert sac_victim("faucet-close-v3") == "zoo:faucet-close-v3@sac"
+    fine_tuned = [t for t, kinds in zoo_victims().items() if "sac-ft" in kinds and "sac" not in kinds]
+    for task in fine_tuned:
+        assert sac_victim(task) == f"zoo:{task}@sac-ft"
+    with pytest.raises(RatError, match="no SAC victim of window-open-v3.*rat victim ship RUN window-open-v3@sac-ft"):
+        sac_victim("window-open-v3")

@@ -842,8 +842,8 @@ def bench_report(folder) -> None:
 
 @bench.command("table3")
 @click.option("--tasks", default="faucet-close-v3", show_default=True, callback=_csv(str),
-              help="tasks with a zoo SAC victim (zoo:<task>@sac), comma-separated; the paper's: door-lock-v3, "
-                   "door-unlock-v3, faucet-open-v3, faucet-close-v3")
+              help="tasks with a zoo SAC victim (zoo:<task>@sac or @sac-ft), comma-separated; the paper's: "
+                   "door-lock-v3, door-unlock-v3, faucet-open-v3, faucet-close-v3")
 @click.option("--rows", default="undefended,none,rat-atla,rat-wocar,rat-wocar-worst,atla,pa-atla", show_default=True,
               callback=_csv(str), help="the defences (each a robust agent trained from the zoo victim; rat-wocar-worst: "
                                        "RAT-WocaR with the worst-case estimate), and the victim itself")

@@ -2,13 +2,14 @@
 
 A row is one defence of one task and seed (``rat-atla``, ``rat-wocar``, ``atla``, ``pa-atla``, and
 ``rat-wocar-worst``: RAT-WocaR with WocaR's worst-case estimate in place of the release's term), ``undefended``:
-the zoo's SAC victim the defences start from, or ``none``: that victim trained on as the defences are, with no
-defence (the control, which tells what a defence does beyond the fine-tuning every row gets). Each row's agent is
-trained by :func:`~rat.robust.run.train_robust_from` in ``<out>/<task>/<row>-seed<seed>`` (skipped once
-finished, resumed if interrupted), then every attack is trained against it in that directory's ``eval/<attack>``
-(:func:`~rat.robust.run.attack_agent`): two waves of cells on :mod:`rat.experiments.grid`, in local processes or as
-Ray tasks. The table gives, per attack, the task return (table 3's number) *and* the target's success rate, and per
-row the clean return, the price a defence pays when nobody attacks.
+the zoo's SAC victim the defences start from (:func:`~rat.victims.zoo.sac_victim`), or ``none``: that victim
+trained on as the defences are, with no defence (the control, which tells what a defence does beyond the
+fine-tuning every row gets). Each row's agent is trained by :func:`~rat.robust.run.train_robust_from` in
+``<out>/<task>/<row>-seed<seed>`` (skipped once finished, resumed if interrupted), then every attack is trained
+against it in that directory's ``eval/<attack>`` (:func:`~rat.robust.run.attack_agent`): two waves of cells on
+:mod:`rat.experiments.grid`, in local processes or as Ray tasks. The table gives, per attack, the task return
+(table 3's number) *and* the target's success rate, and per row the clean return, the price a defence pays when
+nobody attacks.
 """
 
 from __future__ import annotations
@@ -72,7 +73,9 @@ class Agent:
 
     def victim(self, out: str | Path) -> str:
         """The victim spec the attacks are trained against."""
-        return f"zoo:{self.task}@sac" if self.row == "undefended" else str(self.directory(out))
+        from rat.victims.zoo import sac_victim
+
+        return sac_victim(self.task) if self.row == "undefended" else str(self.directory(out))
 
     def trained(self, out: str | Path) -> bool:
         return self.row == "undefended" or (self.directory(out) / "report.json").exists()
@@ -83,9 +86,10 @@ def train_agent(agent: Agent, out: str, preset: str, target: str, epsilon: float
     import torch
 
     from rat.robust.run import train_robust_from
+    from rat.victims.zoo import sac_victim
 
     torch.set_num_threads(1)  # one core per cell; cells run side by side
-    report = train_robust_from(row_config(agent.row, preset, agent.seed), f"zoo:{agent.task}@sac",
+    report = train_robust_from(row_config(agent.row, preset, agent.seed), sac_victim(agent.task),
                                target, agent.directory(out), preset, threat=ThreatModel(epsilon, norm),
                                progress=progress)
     return {"cell": agent.key, "train_minutes": report["train_minutes"]}

@@ -5,7 +5,8 @@ cloning of the scripted expert with DART noise: minutes per task on a CPU, again
 see the README). ``zoo/timings.json`` records what each took to make.
 
 A zoo may hold victims of several kinds per task, named ``<task>@<method>`` (``@sac``: SAC
-agents like the paper's; ``@bc``: behaviour clones, also stored as plain ``<task>``).
+agents like the paper's; ``@sac-ft``: a behaviour clone fine-tuned by SAC, where SAC from
+demonstrations took too long; ``@bc``: behaviour clones, also stored as plain ``<task>``).
 ``zoo:<task>`` is the SAC victim where one exists, else the behaviour clone;
 ``zoo:<task>@sac`` and ``zoo:<task>@bc`` name one kind.
 
@@ -65,7 +66,18 @@ def zoo_victims(directory: Path | None = None) -> dict[str, list[str]]:
     for d in [directory] if directory is not None else zoo_dirs():
         for task, methods in _kinds(d).items():
             merged.setdefault(task, set()).update(methods)
-    return {t: sorted(m, key=lambda x: (x != "sac", x != "bc", x)) for t, m in sorted(merged.items())}
+    return {t: sorted(m, key=lambda x: (x != "sac", x != "sac-ft", x != "bc", x)) for t, m in sorted(merged.items())}
+
+
+def sac_victim(task: str) -> str:
+    """The zoo's SAC agent of ``task``, the one robust training starts from: ``zoo:<task>@sac`` (SAC from
+    demonstrations) where there is one, else ``zoo:<task>@sac-ft`` (the clone fine-tuned by SAC)."""
+    kinds = zoo_victims().get(task, [])
+    for kind in ("sac", "sac-ft"):
+        if kind in kinds:
+            return f"{ZOO_PREFIX}{task}@{kind}"
+    raise RatError(f"no SAC victim of {task} in the zoo (it has {', '.join(kinds) or 'nothing'}); make one with "
+                   f"`rat robust train --method none --victim zoo:{task}@bc` and `rat victim ship RUN {task}@sac-ft`")
 
 
 DT_PREFIX = "dt/"
