@@ -113,6 +113,21 @@ def test_the_shipped_sac_victims_are_sacs_own_actors_and_what_a_bare_zoo_name_me
     assert timings[f"{task}@sac"]["clean_success"] >= 0.95 and timings[f"{task}@sac"]["episodes"] == 50
 
 
+def test_the_shipped_fine_tuned_sac_victims_are_the_clone_trained_on_by_sac_and_pass_the_zoos_bar():
+    from rat.victims.zoo import zoo_victims
+
+    fine_tuned = [t for t, kinds in zoo_victims(ZOO_DIR).items() if "sac-ft" in kinds]
+    assert "door-lock-v3" in fine_tuned
+    timings = json.loads((ZOO_DIR / "timings.json").read_text())
+    for task in fine_tuned:
+        assert zoo_victims(ZOO_DIR)[task][:2] == ["sac-ft", "bc"]  # the bare name stays the clone
+        meta = load_victim(f"zoo:{task}@sac-ft").meta
+        assert meta["task"] == task and meta["method"] == "robust-none"
+        assert meta["robust"]["started_from"] in (f"zoo:{task}", f"zoo:{task}@bc")
+        assert meta["config"]["robust"]["agent_steps"] == 40_000 and meta["config"]["robust"]["critic_warmup"] > 0
+        assert timings[f"{task}@sac-ft"]["clean_success"] >= 0.95 and timings[f"{task}@sac-ft"]["episodes"] == 50
+
+
 def test_the_shipped_robust_agents_say_how_they_were_made_and_load_as_victims():
     from rat.victims.zoo import zoo_victims
 
