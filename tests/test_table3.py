@@ -1,6 +1,7 @@
 """`rat bench table3`: the grid's driver, its caching and its table."""
 
 import json
+import re
 
 import pytest
 
@@ -15,8 +16,9 @@ def row(name, seed, ret, std, success, clean=(100.0, 10.0)):
 
 
 def table_rows(text: str, part: int = 0) -> dict[str, str]:
-    """The rows of the page's first table (``part=0``) or of its tests against the undefended victim (1)."""
-    chunk = text.split("Against the undefended victim")[part]
+    """The rows of the page's first table (``part=0``), of its tests against the undefended victim (1) or against
+    the control (2)."""
+    chunk = re.split("Against the undefended victim|Against the control", text)[part]
     return {line.split(" | ")[0]: line for line in chunk.splitlines() if line.startswith("| ")}
 
 
@@ -48,6 +50,18 @@ def test_each_defence_is_tested_against_the_undefended_victim_under_rat():
     assert rat_atla[5] == "95 |"  # its minutes
     atla = lines["| ATLA (SAC agent)"].split(" | ")
     assert float(atla[2]) > 0.5 and float(atla[4]) > 0.4  # no better: nothing significant
+    assert "Against the control" not in text  # no control row, no test against it
+
+
+def test_each_defence_is_also_tested_against_the_control():
+    control = dict(row("none", 0, 30.0, 5.0, 0.5), train_minutes=26.0)
+    defended = dict(row("rat-atla", 0, 40.0, 4.0, 0.2), train_minutes=95.0)
+    text = markdown_table3([row("undefended", 0, 10.0, 5.0, 0.9), control, defended])
+    against_control = table_rows(text, 2)
+    assert "| 50/100 |" in against_control["| fine-tuned, no defence"]
+    rat_atla = against_control["| RAT-ATLA"].split(" | ")
+    assert rat_atla[3] == "20/100" and float(rat_atla[2]) < 1e-30 and float(rat_atla[4]) < 1e-4
+    assert "| fine-tuned, no defence" in table_rows(text, 1)  # the control is itself tested against the victim
 
 
 @pytest.mark.slow

@@ -30,6 +30,8 @@ ATTACKS = ("rat", "pa-ad", "sa-rl", "random")
 ROW_NAMES = {"undefended": "undefended (zoo SAC)", "none": "fine-tuned, no defence", "rat-atla": "RAT-ATLA",
              "rat-wocar": "RAT-WocaR", "rat-wocar-worst": "RAT-WocaR (worst-case Q)", "atla": "ATLA (SAC agent)",
              "pa-atla": "PA-ATLA (SAC agent)"}
+#: The rows the defences are tested against.
+BASELINES = {"undefended": "the undefended victim", "none": "the control (fine-tuned, no defence)"}
 #: A row that is a method under other settings than its defaults; every other row is its method.
 ROW_SETTINGS = {"rat-wocar-worst": ("rat-wocar", {"wocar_critic": "worst-case"})}
 
@@ -236,14 +238,16 @@ def markdown_table3(rows: list[dict]) -> str:
                 average += f" / {np.mean([v[0] for v in paper.values()]):.0f}"
             lines.append(f"| {ROW_NAMES[name]} | {len(mine)} | {clean[0]:.0f} ± {clean[1]:.0f} | "
                          + " | ".join(cells) + f" | {average} |")
-        lines += ["", *against_undefended([r for r in rows if r["task"] == task])]
+        of_task = [r for r in rows if r["task"] == task]
+        lines += ["", *against(of_task, "undefended"), *against(of_task, "none")]
     return "\n".join(lines)
 
 
-def against_undefended(rows: list[dict], attack: str = "rat") -> list[str]:
-    """Each defended row of one task against the undefended victim under ``attack``: the task return (Welch's
-    one-sided t-test that the defence's is higher, from the pooled means and stds) and the target's success
-    (Fisher's exact one-sided test that it is lower), with the minutes its agent took to train."""
+def against(rows: list[dict], base: str = "undefended", attack: str = "rat") -> list[str]:
+    """Each other defended row of one task against row ``base`` (the undefended victim, or the ``none`` control)
+    under ``attack``: the task return (Welch's one-sided t-test that the defence's is higher, from the pooled means
+    and stds) and the target's success (Fisher's exact one-sided test that it is lower), with the minutes its agent
+    took to train."""
     from scipy import stats
 
     def pooled_cell(name):
@@ -256,19 +260,20 @@ def against_undefended(rows: list[dict], attack: str = "rat") -> list[str]:
         minutes = [r["train_minutes"] for _, r in cells if "train_minutes" in r]
         return mean, std, n, hits, minutes
 
-    base = pooled_cell("undefended")
-    defended = [(name, cell) for name in ROWS if name != "undefended" and (cell := pooled_cell(name))]
-    if base is None or not defended:
+    reference = pooled_cell(base)
+    defended = [(name, cell) for name in ROWS if name not in ("undefended", base) and (cell := pooled_cell(name))]
+    if reference is None or not defended:
         return []
-    lines = [f"Against the undefended victim under {attack} (return higher: Welch, one-sided; target reached less: "
+    lines = [f"Against {BASELINES[base]} under {attack} (return higher: Welch, one-sided; target reached less: "
              "Fisher, one-sided):", "",
              "| row | return | p (higher) | target reached | p (less) | minutes to train |",
              "| --- | ---: | ---: | ---: | ---: | ---: |",
-             f"| {ROW_NAMES['undefended']} | {base[0]:.0f} | | {base[3]}/{base[2]} | | |"]
+             f"| {ROW_NAMES[base]} | {reference[0]:.0f} | | {reference[3]}/{reference[2]} | | |"]
     for name, (mean, std, n, hits, minutes) in defended:
-        p_return = stats.ttest_ind_from_stats(mean, std, n, base[0], base[1], base[2], equal_var=False,
-                                              alternative="greater").pvalue
-        p_target = stats.fisher_exact([[hits, n - hits], [base[3], base[2] - base[3]]], alternative="less").pvalue
+        p_return = stats.ttest_ind_from_stats(mean, std, n, reference[0], reference[1], reference[2],
+                                              equal_var=False, alternative="greater").pvalue
+        p_target = stats.fisher_exact([[hits, n - hits], [reference[3], reference[2] - reference[3]]],
+                                      alternative="less").pvalue
         took = ", ".join(f"{m:.0f}" for m in minutes) or "–"
         lines.append(f"| {ROW_NAMES[name]} | {mean:.0f} | {p_return:.2g} | {hits}/{n} | {p_target:.2g} | {took} |")
     return lines + [""]
