@@ -177,3 +177,15 @@ def test_the_shipped_decision_transformers_load_act_as_recorded_and_say_how_good
     code = main(["victim", "eval", f"zoo:{name}", "--episodes", "1"])
     out = capsys.readouterr().out
     assert code == 0 and "return" in out and "success" not in out  # locomotion's own task: a return only
+
+
+def test_the_action_distance_is_zero_for_a_victim_and_itself_and_not_for_another_policy():
+    from benchmark_scripts import load
+
+    from rat.errors import RatError
+
+    distance = load("action_distance").action_distance
+    assert distance("zoo:faucet-close-v3@sac", "zoo:faucet-close-v3@sac", 1) == (0.0, 0.0)
+    assert distance("zoo:faucet-close-v3@sac", "zoo:faucet-close-v3@bc", 1)[0] > 0.05  # another policy entirely
+    with pytest.raises(RatError, match="same task"):
+        distance("zoo:faucet-close-v3@sac", "zoo:door-lock-v3@bc", 1)
