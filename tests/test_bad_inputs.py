@@ -110,6 +110,11 @@ CASES = [
      ["first labels come at step 10000"]),
     ("warm-up on an attack without one", lambda t, z: ["attack", "train", "--method", "random", "--seed-steps", "10",
                                                        "--out", str(t / "run")], ["do not apply to attack 'random'"]),
+    ("a path that does not exist", lambda t, z: ["victim", "ship", str(t / "nothing"), "door-lock-v3@sac"],
+     ["'SOURCE'", "does not exist", "see 'rat victim ship --help'"]),
+    ("an option no command has", lambda t, z: ["attack", "train", "--epsilom", "0.1", "--out", str(t / "run")],
+     ["No such option '--epsilom'", "--epsilon", "see 'rat attack train --help'"]),
+    ("a command that does not exist", lambda t, z: ["atack", "train"], ["No such command 'atack'"]),
     ("out is a file", lambda t, z: (t / "file").write_text("mine") and
      ["attack", "train", "--method", "random", "--out", str(t / "file")], ["is a file, not a folder"]),
     ("out under a file", lambda t, z: (t / "file").write_text("mine") and

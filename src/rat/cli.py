@@ -364,8 +364,9 @@ def victim_zoo(ctx, tasks, jobs, dest, work_dir, **_) -> None:
 @click.option("--dest", type=click.Path(path_type=Path), default=None,
               help="zoo folder [your zoo: $RAT_ZOO or ~/.local/share/rat/zoo, searched before the shipped one]")
 @click.option("--episodes", type=int, default=50, show_default=True, help="clean evaluation episodes")
+@click.option("--seed", type=int, default=0, show_default=True, help="seed of the clean evaluation's episodes")
 @click.option("--note", default=None, help="how it was made, for timings.json")
-def victim_ship(source, name, dest, episodes, note) -> None:
+def victim_ship(source, name, dest, episodes, seed, note) -> None:
     """Put a trained victim (SOURCE: a run directory or a victim checkpoint) into a zoo as zoo:NAME (<task>@<kind>),
     after a clean evaluation that must reach 95% success."""
     from rat.runs import check_writable_dir
@@ -374,7 +375,7 @@ def victim_ship(source, name, dest, episodes, note) -> None:
     if episodes <= 0:
         raise RatError(f"--episodes must be positive, got {episodes}")
     dest = check_writable_dir(dest or user_zoo_dir(), "--dest")
-    row = ship_victim(source, name, dest, episodes, note=note)
+    row = ship_victim(source, name, dest, episodes, seed=seed, note=note)
     click.echo(f"zoo:{name} in {dest}: clean success {row['clean_success']:.0%} over {row['episodes']} episodes, "
                f"return {row['mean_return']:.0f}")
 
@@ -936,6 +937,13 @@ def main(argv: list[str] | None = None) -> int:
     except click.exceptions.Abort:
         click.echo("rat: aborted", err=True)
         return 130
+    except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, as click would show it
+        exc.show()
+        return exc.exit_code
+    except click.UsageError as exc:  # a wrong option or argument: one line, with where to look
+        where = f"; see '{exc.ctx.command_path} --help'" if exc.ctx is not None else ""
+        click.echo(f"rat: error: {exc.format_message().rstrip('.')}{where}", err=True)
+        return exc.exit_code
     except click.ClickException as exc:
         exc.show()
         return exc.exit_code
