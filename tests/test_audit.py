@@ -1,7 +1,14 @@
 """`rat audit` on the point environment: every cell measured, the page written with every section, a second call
-measuring only what the first left, the budget respected, and bad requests refused in one line."""
+measuring only what the first left, an audit killed mid-cell resumed, its page rendered in a real browser, the
+budget respected, and bad requests refused in one line."""
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -51,6 +58,83 @@ def test_an_audit_measures_every_cell_writes_its_page_and_resumes(tmp_path):
         assert f'id="{section}' in page, section
     assert 'src="audit.png"' in page and (tmp_path / "audit.png").stat().st_size > 10_000
     assert page.count("<tr><td>beside</td>") == 8
+
+
+KILLABLE = """
+import sys, torch
+sys.path.insert(0, {tests!r})
+torch.set_num_threads(1)
+from test_audit import config_for, setup_for
+from rat.experiments.audit import run_audit
+run_audit(setup_for, config_for, ["beside"], [0.05, 0.1], {out!r}, 60, ["random", "rat"], echo=lambda _: None)
+"""
+
+
+def film_stand_in(run: Path, path: Path) -> None:
+    """The point environment has no camera: a short clip of a moving square stands in for the filmed episodes."""
+    from rat.eval import write_video
+
+    frames = [np.zeros((64, 96, 3), np.uint8) for _ in range(20)]
+    for i, frame in enumerate(frames):
+        frame[20:40, 4 * i:4 * i + 20] = 255
+    write_video(frames, path)
+
+
+@pytest.fixture(scope="module")
+def killed_audit(tmp_path_factory):
+    """An audit killed while RAT trains its first cell (after a checkpoint), then called again to finish it."""
+    out = tmp_path_factory.mktemp("audit")
+    rat_cell = out / "beside" / "eps0.05" / "rat"
+    proc = subprocess.Popen([sys.executable, "-c", KILLABLE.format(tests=str(Path(__file__).parent), out=str(out))])
+    deadline = time.time() + 300
+    while not (rat_cell / "checkpoint.json").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (rat_cell / "checkpoint.json").exists() and not (rat_cell / "report.json").exists(), "not killed mid-cell"
+    before = {p: p.stat().st_mtime for p in out.glob("beside/*/random/report.json")}
+    record = run_audit(setup_for, config_for, ["beside"], [0.05, 0.1], out, 60, ["random", "rat"],
+                       echo=lambda _: None, film=film_stand_in, victim="go-to-goal")
+    return out, record, before
+
+
+@pytest.mark.slow
+def test_an_audit_killed_mid_cell_resumes_that_cell_and_keeps_the_finished_ones(killed_audit):
+    out, record, before = killed_audit
+    assert len(before) == 2 and {p: p.stat().st_mtime for p in before} == before  # measured once, kept
+    assert [(r["attack"], r["epsilon"], r["status"]) for r in record["rows"]] == [
+        ("random", 0.05, "done"), ("random", 0.1, "done"), ("rat", 0.05, "done"), ("rat", 0.1, "done")]
+    from rat.reports import AttackReport
+
+    resumed = AttackReport.read(out / "beside" / "eps0.05" / "rat")
+    assert resumed.train_minutes > resumed.train_minutes_this_session  # it went on from the killed session's checkpoint
+    videos = json.loads((out / "audit.json").read_text())["videos"]
+    assert list(videos) == ["beside"] and videos["beside"].startswith("beside-eps0.1-") and (out / videos["beside"]).exists()
+
+
+@pytest.mark.slow
+def test_the_audit_page_renders_in_chromium_with_its_plot_and_video(killed_audit):
+    from test_pages import CHROMIUM
+
+    if CHROMIUM is None:
+        pytest.skip("no Chromium: install it with `sudo apt-get install chromium` (make test does where it can)")
+    playwright = pytest.importorskip("playwright.sync_api", reason="pip install playwright (the dev extra has it)")
+    page_path = write_page(killed_audit[0])
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        page = browser.new_page()
+        page.goto(page_path.as_uri())
+        page.wait_for_load_state("load")
+        for section in ("summary", "success-and-return-against", "table", "attacked-episodes", "not-run"):
+            assert page.locator(f"section[id^='{section}'] h2").count() == 1, section
+        assert page.locator("table tbody tr").count() == 4
+        widths = page.eval_on_selector_all("img", "imgs => imgs.map(i => i.complete ? i.naturalWidth : 0)")
+        assert widths and all(w > 100 for w in widths), widths  # audit.png found and decoded
+        page.wait_for_function("document.querySelector('video').readyState >= 1 || document.querySelector('video').error")
+        video = page.evaluate("(() => { const v = document.querySelector('video');"
+                              " return [v.readyState, v.videoWidth, v.error && v.error.code]; })()")
+        assert video[1] == 96 and video[2] is None, video  # the clip found and decoded
+        browser.close()
 
 
 def test_the_budget_is_checked_before_each_cell_and_what_did_not_run_is_said(tmp_path, monkeypatch):
