@@ -76,6 +76,7 @@ def test_bench_table3_attacks_the_undefended_victim_and_keeps_what_it_measured(t
     assert main(args) == 0
     cell = tmp_path / "faucet-close-v3" / "undefended-seed0"
     record = json.loads((cell / "row.json").read_text())
+    assert record["victim"] == "zoo:faucet-close-v3@sac"  # which zoo victim the row is
     assert record["attacks"]["random"]["episodes"] == 3 and record["clean_return"] > 1000  # the zoo victim succeeds
     assert "undefended (zoo SAC)" in (tmp_path / "table3.md").read_text()
     (cell / "eval" / "random" / "table-row.json").write_text(json.dumps({**record["attacks"]["random"], "return": -1.0}))

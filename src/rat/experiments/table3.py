@@ -140,7 +140,9 @@ def write_row(agent: Agent, attacks: list[str], out: str | Path, preset: str, ta
     record = {"task": agent.task, "row": agent.row, "seed": agent.seed, "target": target, "epsilon": threat.epsilon,
               "norm": threat.norm, "preset": preset, "clean_return": first["clean_return"],
               "clean_return_std": first["clean_return_std"], "attacks": cells}
-    if agent.row != "undefended":
+    if agent.row == "undefended":
+        record["victim"] = agent.victim(out)  # which zoo victim: @sac, or the SAC-fine-tuned clone (@sac-ft)
+    else:
         report = finished_report(directory)
         record |= {"train_minutes": report["train_minutes"], "clean_task_success": report["clean_task_success"]}
     (directory / "row.json").write_text(json.dumps(record, indent=1))
